@@ -1,0 +1,280 @@
+"""Batched TorchRL environment of the NPR mode-locked fiber laser.
+
+The env only adapts the pure physics in ``laserrl.physics``: it keeps the batched
+cavity state (fields, angles, birefringence K), turns a discrete action into angle
+changes, runs the cavity for one agent step and reports r = E / M4.
+
+Observation: ``fields`` (B, 4, n) float32 = (Re u, Im u, Re v, Im v) and ``angles``
+(B, 4) in radians (alpha1, alpha2, alpha3, alpha_p), wrapped to [-pi/2, pi/2).
+K is the latent disturbance and is not observed. Diagnostics that a policy should
+not read are put next to the observation: ``r`` (raw reward), ``round_trips``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields as dc_fields
+from typing import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from laserrl.envs.actions import action_to_deltas, num_actions
+from laserrl.physics import CavityParams, NonFiniteFieldError, noise_fields, reward_terms, run_to_convergence, sech_fields
+
+ANGLE_NAMES = ("alpha1", "alpha2", "alpha3", "alpha_p")
+_DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
+
+
+def _range(value, name: str) -> tuple[float, float]:
+    """A fixed value or a [lo, hi] range, as (lo, hi)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        lo = hi = float(value)
+    elif isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
+        lo, hi = (float(x) for x in value)
+    else:
+        raise ValueError(f"{name} must be a number or a [low, high] pair, got {value!r}")
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
+    return lo, hi
+
+
+@dataclass
+class LaserTask:
+    """What the agent controls and how episodes start. Angles in degrees.
+
+    Defaults are the paper's single-input task: K = 0.1, alpha2 = 3, alpha3 = 28,
+    alpha_p = 88 deg; alpha1 controlled in 2 deg steps from uniform [-40, -10] deg;
+    u = v = 0.5 sech(t/2).
+    """
+
+    controlled: Sequence[str] = ("alpha1",)
+    steps_deg: Sequence[float] = (2.0,)
+    # initial angle of each of the four plates: a number or a [low, high] range
+    init_angles_deg: dict = field(default_factory=lambda: {"alpha1": (-40.0, -10.0), "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0})
+    K: float | Sequence[float] = 0.1  # fixed, or a [low, high] range sampled at reset
+    init_fields: str = "sech"  # "sech" or "noise"
+    sech_amplitude: float = 0.5
+    sech_width: float = 2.0
+    noise_scale: float = 0.1
+    max_round_trips: int = 500  # per agent step (paper: 500)
+    tol: float = 1e-6  # convergence tolerance per agent step (paper: 1e-6; complex64 resolves 1e-5)
+    max_steps: int = 40  # episode length (paper: 40 in training, 20 at inference)
+    dtype: str = "complex64"
+    compile: bool = False
+
+    def __post_init__(self):
+        self.controlled = tuple(self.controlled)
+        self.steps_deg = tuple(float(s) for s in self.steps_deg)
+        if not self.controlled or len(set(self.controlled)) != len(self.controlled):
+            raise ValueError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {self.controlled!r}")
+        for name in self.controlled:
+            if name not in ANGLE_NAMES:
+                raise ValueError(f"controlled: unknown angle {name!r}; choose from {ANGLE_NAMES}")
+        if len(self.steps_deg) != len(self.controlled):
+            raise ValueError(f"steps_deg needs one step per controlled angle ({len(self.controlled)}), got {self.steps_deg!r}")
+        for s in self.steps_deg:
+            if not (math.isfinite(s) and s > 0):
+                raise ValueError(f"steps_deg must be positive and finite, got {self.steps_deg!r}")
+        init = dict(self.init_angles_deg)
+        unknown = set(init) - set(ANGLE_NAMES)
+        if unknown:
+            raise ValueError(f"init_angles_deg: unknown angle(s) {sorted(unknown)}; choose from {ANGLE_NAMES}")
+        missing = set(ANGLE_NAMES) - set(init)
+        if missing:
+            raise ValueError(f"init_angles_deg must give all four angles, missing {sorted(missing)}")
+        self.init_angles_deg = {k: _range(init[k], f"init_angles_deg.{k}") for k in ANGLE_NAMES}
+        self.K = _range(self.K, "K")
+        if self.init_fields not in ("sech", "noise"):
+            raise ValueError(f"init_fields must be 'sech' or 'noise', got {self.init_fields!r}")
+        for name in ("sech_amplitude", "sech_width", "noise_scale"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)!r}")
+        for name in ("max_round_trips", "max_steps"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not (self.tol >= 0 and math.isfinite(self.tol)):
+            raise ValueError(f"tol must be >= 0, got {self.tol!r}")
+        if self.dtype not in _DTYPES:
+            raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
+
+    @property
+    def controlled_index(self) -> list[int]:
+        return [ANGLE_NAMES.index(n) for n in self.controlled]
+
+    @property
+    def num_actions(self) -> int:
+        return num_actions(len(self.controlled))
+
+
+def wrap_angle(a: torch.Tensor) -> torch.Tensor:
+    """Wrap radians to [-pi/2, pi/2): every Jones matrix has period pi."""
+    return torch.remainder(a + math.pi / 2, math.pi) - math.pi / 2
+
+
+class LaserCavityEnv(EnvBase):
+    """B cavities stepped together; see the module docstring.
+
+    Args:
+        batch_size: number of cavities, an int or [N].
+        task: a ``LaserTask``; any of its fields may be given as keyword arguments instead.
+        params: ``CavityParams`` of the physics (paper defaults).
+        device: torch device. seed: seed of the env's own ``torch.Generator``.
+    """
+
+    batch_locked = True
+
+    def __init__(self, batch_size=1, task: LaserTask | None = None, params: CavityParams | None = None,
+                 device=None, seed: int | None = None, **task_kwargs):
+        if isinstance(batch_size, int):
+            batch_size = [batch_size]
+        batch_size = torch.Size(batch_size)
+        if len(batch_size) != 1 or batch_size[0] < 1:
+            raise ValueError(f"batch_size must be a positive int or [N], got {list(batch_size)}")
+        if task is not None and task_kwargs:
+            raise ValueError("give either task= or task keyword arguments, not both")
+        known = {f.name for f in dc_fields(LaserTask)}
+        unknown = set(task_kwargs) - known
+        if unknown:
+            raise ValueError(f"unknown LaserCavityEnv argument(s) {sorted(unknown)}; task fields are {sorted(known)}")
+        self.task = task if task is not None else LaserTask(**task_kwargs)
+        self.params = params if params is not None else CavityParams()
+        super().__init__(device=device or "cpu", batch_size=batch_size)
+        self._cdtype = _DTYPES[self.task.dtype]
+        self._rdtype = torch.float64 if self._cdtype == torch.complex128 else torch.float32
+        n, B = self.params.n, batch_size[0]
+        dev = self.device
+        t = self.task
+        self._ctrl_idx = torch.tensor(t.controlled_index, device=dev)
+        self._steps = torch.tensor([math.radians(s) for s in t.steps_deg], dtype=torch.float64, device=dev)
+        lo_hi = torch.tensor([t.init_angles_deg[k] for k in ANGLE_NAMES], dtype=torch.float64, device=dev)
+        self._angle_lo, self._angle_hi = torch.deg2rad(lo_hi[:, 0]), torch.deg2rad(lo_hi[:, 1])
+        self._rng = torch.Generator(device=dev)
+        self._rng.manual_seed(seed if seed is not None else int(torch.empty((), dtype=torch.int64).random_()))
+        # physics state
+        self._u = torch.zeros(B, n, dtype=self._cdtype, device=dev)
+        self._v = torch.zeros_like(self._u)
+        self._angles = torch.zeros(B, 4, dtype=torch.float64, device=dev)
+        self._K = torch.zeros(B, dtype=torch.float64, device=dev)
+        self._step_count = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._make_specs()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        B, n, dev = self.batch_size, self.params.n, self.device
+        self.observation_spec = Composite(
+            fields=Unbounded(shape=(*B, 4, n), dtype=torch.float32, device=dev),
+            angles=Bounded(low=-math.pi / 2, high=math.pi / 2, shape=(*B, 4), dtype=torch.float32, device=dev),
+            r=Unbounded(shape=(*B, 1), dtype=torch.float32, device=dev),
+            round_trips=Unbounded(shape=(*B, 1), dtype=torch.int64, device=dev),
+            step_count=Unbounded(shape=(*B, 1), dtype=torch.int64, device=dev),
+            shape=B,
+            device=dev,
+        )
+        self.action_spec = Categorical(self.task.num_actions, shape=B, device=dev)
+        self.reward_spec = Unbounded(shape=(*B, 1), dtype=torch.float32, device=dev)
+        flag = Categorical(2, shape=(*B, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(done=flag, terminated=flag.clone(), truncated=flag.clone(), shape=B, device=dev)
+
+    # ------------------------------------------------------------------ helpers
+    def _observation(self, r: torch.Tensor, round_trips: torch.Tensor) -> TensorDict:
+        fields = torch.stack([self._u.real, self._u.imag, self._v.real, self._v.imag], dim=1).to(torch.float32)
+        return TensorDict(
+            fields=fields,
+            angles=self._angles.to(torch.float32),
+            r=r.to(torch.float32).unsqueeze(-1),
+            round_trips=round_trips.unsqueeze(-1),
+            step_count=self._step_count.unsqueeze(-1).clone(),
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    def _sample_initial(self):
+        """A fresh initial state for every cavity (the caller keeps only the reset ones)."""
+        B, dev, t = self.batch_size[0], self.device, self.task
+        uni = torch.rand((B, 5), generator=self._rng, dtype=torch.float64, device=dev)
+        angles = self._angle_lo + uni[:, :4] * (self._angle_hi - self._angle_lo)
+        K = t.K[0] + uni[:, 4] * (t.K[1] - t.K[0])
+        if t.init_fields == "sech":
+            u, v = sech_fields(B, self.params, t.sech_amplitude, t.sech_width, dtype=self._cdtype, device=dev)
+        else:
+            u, v = noise_fields(B, self.params, self._rng, t.noise_scale, dtype=self._cdtype, device=dev)
+        return u, v, wrap_angle(angles), K
+
+    # ------------------------------------------------------------------ EnvBase API
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None
+        if tensordict is not None and "_reset" in tensordict.keys():
+            mask = tensordict.get("_reset").reshape(self.batch_size)
+        u, v, angles, K = self._sample_initial()
+        if mask is None:
+            self._u, self._v, self._angles, self._K = u, v, angles, K
+            self._step_count = torch.zeros_like(self._step_count)
+        else:
+            # sync-free partial reset: sample for all, keep where the mask is set
+            m1 = mask[:, None]
+            self._u = torch.where(m1, u, self._u)
+            self._v = torch.where(m1, v, self._v)
+            self._angles = torch.where(m1, angles, self._angles)
+            self._K = torch.where(mask, K, self._K)
+            self._step_count = torch.where(mask, 0, self._step_count)
+        r = reward_terms(self._u, self._v, self.params)[2]
+        out = self._observation(r, torch.zeros_like(self._step_count))
+        out.set("done", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
+        out.set("terminated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
+        out.set("truncated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
+        return out
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").reshape(self.batch_size)
+        deltas = action_to_deltas(action, self._steps)  # (B, m) radians
+        angles = self._angles.clone()
+        angles[:, self._ctrl_idx] = wrap_angle(angles[:, self._ctrl_idx] + deltas)
+        self._angles = angles
+        try:
+            result = run_to_convergence(self._u, self._v, angles, self._K, self.params, tol=self.task.tol,
+                                        max_round_trips=self.task.max_round_trips, compile=self.task.compile)
+        except NonFiniteFieldError as err:
+            i = err.cavities[0]
+            raise NonFiniteFieldError(
+                err.cavities,
+                f" at angles {torch.rad2deg(angles[i]).tolist()} deg and K = {float(self._K[i])} (cavity {i} of the batch)",
+            ) from None
+        self._u, self._v = result.u, result.v
+        self._step_count = self._step_count + 1
+        r = reward_terms(self._u, self._v, self.params)[2]
+        out = self._observation(r, result.round_trips)
+        out.set("reward", r.to(torch.float32).unsqueeze(-1))
+        truncated = (self._step_count >= self.task.max_steps).unsqueeze(-1)
+        out.set("truncated", truncated)
+        out.set("terminated", torch.zeros_like(truncated))
+        out.set("done", truncated.clone())
+        return out
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_())
+        self._rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ introspection
+    @property
+    def K(self) -> torch.Tensor:
+        """Current birefringence of every cavity (hidden from the agent)."""
+        return self._K.clone()
+
+    def set_K(self, K) -> None:
+        """Set the birefringence of every cavity, e.g. to model drift between steps."""
+        K = torch.as_tensor(K, dtype=torch.float64, device=self.device)
+        K = K.expand(self.batch_size) if K.ndim == 0 else K
+        if K.shape != self.batch_size or not bool(torch.isfinite(K).all()):
+            raise ValueError(f"K must be finite with shape {tuple(self.batch_size)}, got {tuple(K.shape)}")
+        self._K = K.clone()
+
+    def fields(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Current complex fields (u, v), (B, n)."""
+        return self._u.clone(), self._v.clone()
+
+    def angles_deg(self) -> torch.Tensor:
+        return torch.rad2deg(self._angles)
