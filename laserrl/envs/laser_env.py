@@ -21,6 +21,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import action_to_deltas, num_actions
+from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, NonFiniteFieldError, noise_fields, reward_terms, run_to_convergence, sech_fields
 
 ANGLE_NAMES = ("alpha1", "alpha2", "alpha3", "alpha_p")
@@ -59,7 +60,9 @@ class LaserTask:
     sech_width: float = 2.0
     noise_scale: float = 0.1
     max_round_trips: int = 500  # per agent step (paper: 500)
-    tol: float = 1e-6  # convergence tolerance per agent step (paper: 1e-6; complex64 resolves 1e-5)
+    # convergence tolerance per agent step; None = the finest the dtype resolves:
+    # the paper's 1e-6 with complex128, 1e-5 with complex64 (see CONVERGENCE_FLOOR)
+    tol: float | None = None
     max_steps: int = 40  # episode length (paper: 40 in training, 20 at inference)
     dtype: str = "complex64"
     compile: bool = False
@@ -95,10 +98,12 @@ class LaserTask:
             value = getattr(self, name)
             if isinstance(value, bool) or int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if not (self.tol >= 0 and math.isfinite(self.tol)):
-            raise ValueError(f"tol must be >= 0, got {self.tol!r}")
         if self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
+        if self.tol is None:
+            self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
+        if not (self.tol >= 0 and math.isfinite(self.tol)):
+            raise ValueError(f"tol must be >= 0, got {self.tol!r}")
 
     @property
     def controlled_index(self) -> list[int]:
@@ -205,10 +210,17 @@ class LaserCavityEnv(EnvBase):
 
     # ------------------------------------------------------------------ EnvBase API
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        """Reset all cavities, or those in the ``_reset`` mask. Optional entries of the
+        input: ``init_angles`` (B, 4) radians and ``init_K`` (B,) replace the sampled ones."""
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.batch_size)
         u, v, angles, K = self._sample_initial()
+        # explicit initial state for evaluation protocols: (B, 4) radians / (B,) K
+        if tensordict is not None and "init_angles" in tensordict.keys():
+            angles = wrap_angle(tensordict.get("init_angles").to(device=self.device, dtype=torch.float64).reshape(angles.shape))
+        if tensordict is not None and "init_K" in tensordict.keys():
+            K = tensordict.get("init_K").to(device=self.device, dtype=torch.float64).reshape(K.shape)
         if mask is None:
             self._u, self._v, self._angles, self._K = u, v, angles, K
             self._step_count = torch.zeros_like(self._step_count)

@@ -57,6 +57,10 @@ class CavityParams:
                 raise ValueError(f"CavityParams.{f.name} must be a number, got {value!r}")
             if math.isnan(value) or math.isinf(value):
                 raise ValueError(f"CavityParams.{f.name} must be finite, got {value!r}")
+        for name in ("n", "z_steps"):  # whole numbers may arrive as floats from config files
+            value = getattr(self, name)
+            if isinstance(value, float) and value.is_integer():
+                object.__setattr__(self, name, int(value))
         n = self.n
         if int(n) != n or n < 16 or (int(n) & (int(n) - 1)) != 0:
             raise ValueError(f"CavityParams.n must be a power of two >= 16, got {n!r}")
@@ -79,7 +83,7 @@ class CavityParams:
         Meets a relative L2 error <= 1e-8 per round trip against the DOP853
         reference solutions (``tests/physics/test_accuracy.py``).
         """
-        overrides.setdefault("z_steps", 16)
+        overrides.setdefault("z_steps", 32)
         return cls(**overrides)
 
     def replace(self, **changes) -> "CavityParams":

@@ -53,10 +53,12 @@ class ConvergenceResult:
     tol: float  # tolerance used (see CONVERGENCE_FLOOR)
 
 
-def check_finite(u: torch.Tensor, v: torch.Tensor, where: str = "") -> None:
+def check_finite(u: torch.Tensor, v: torch.Tensor, where: str = "", index: torch.Tensor | None = None) -> None:
+    """Raise NonFiniteFieldError naming the cavities (batch indices, or ``index[i]``) with NaN/inf fields."""
     bad = ~(torch.isfinite(torch.view_as_real(u)).all((-1, -2)) & torch.isfinite(torch.view_as_real(v)).all((-1, -2)))
     if bool(bad.any()):
-        raise NonFiniteFieldError(bad.nonzero().flatten().tolist(), where)
+        rows = bad.nonzero().flatten()
+        raise NonFiniteFieldError((rows if index is None else index[rows]).tolist(), where)
 
 
 def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e-6, max_round_trips: int = 500,
@@ -99,7 +101,7 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
             break
         u_old, v_old = u[idx], v[idx]
         u_new, v_new = round_trip(u_old, v_old, angles[idx], K[idx], params, compile=compile)
-        check_finite(u_new, v_new, " during a round trip")
+        check_finite(u_new, v_new, " during a round trip", index=idx)
         delta = convergence(u_new, v_new, u_old, v_old)
         u[idx], v[idx] = u_new, v_new
         count[idx] += 1

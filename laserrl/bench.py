@@ -1,0 +1,194 @@
+"""``laserrl-bench``: cavity round trips per second, torch batch vs the scipy reference.
+
+Everything is measured in one run, so the ratios hold on a shared, noisy machine:
+
+* the scipy reference (``laserrl.physics.reference``): one cavity, DOP853 per round
+  trip at scipy's default tolerance (rtol 1e-3, atol 1e-6), as in the paper's code;
+* the torch solver at the default settings (complex64, ``CavityParams().z_steps``)
+  for each batch size, compiled unless ``--no-compile``;
+* the FFT-bound estimate: the time of the FFT pairs alone that one round trip needs
+  (12 DOP853 stages per step, one inverse and one forward FFT of both fields each);
+* accuracy: worst relative L2 error of one round trip against the stored
+  high-accuracy reference solutions (``tests/data/cavity_reference.npz``).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from laserrl.physics import CavityParams, round_trip, sech_fields
+from laserrl.physics import reference as ref
+
+STAGES = 12  # DOP853
+PAPER_ANGLES_DEG = (-24.0, 3.0, 28.0, 88.0)
+
+
+def _reference_data() -> dict | None:
+    here = Path(__file__).resolve().parent.parent / "tests" / "data" / "cavity_reference.npz"
+    if not here.exists():
+        return None
+    with np.load(here) as d:
+        return {k: d[k] for k in d.files}
+
+
+def _cases(data: dict) -> list[str]:
+    return sorted({k.split("/")[0] for k in data if "/" in k})
+
+
+def _rel_err(u, v, U, V) -> np.ndarray:
+    num = np.sqrt((np.abs(u - U) ** 2).sum(-1) + (np.abs(v - V) ** 2).sum(-1))
+    return num / np.sqrt((np.abs(U) ** 2).sum(-1) + (np.abs(V) ** 2).sum(-1))
+
+
+def torch_accuracy(data: dict, params: CavityParams, dtype=torch.complex64, compile: bool = False) -> float:
+    """Worst one-round-trip relative error over every stored round trip of every case."""
+    worst = 0.0
+    for case in _cases(data):
+        u = torch.as_tensor(data[f"{case}/u"][:-1]).to(dtype)
+        v = torch.as_tensor(data[f"{case}/v"][:-1]).to(dtype)
+        ang = torch.deg2rad(torch.as_tensor(data[f"{case}/angles_deg"], dtype=torch.float64)).expand(u.shape[0], 4)
+        u1, v1 = round_trip(u, v, ang, float(data[f"{case}/K"]), params, compile=compile)
+        err = _rel_err(u1.cpu().numpy(), v1.cpu().numpy(), data[f"{case}/u"][1:], data[f"{case}/v"][1:])
+        worst = max(worst, float(err.max()))
+    return worst
+
+
+def scipy_accuracy(data: dict, params: CavityParams, every: int = 4) -> float:
+    worst = 0.0
+    for case in _cases(data):
+        ang = np.deg2rad(data[f"{case}/angles_deg"])
+        for j in range(0, len(data[f"{case}/u"]) - 1, every):
+            u, v = ref.round_trip(data[f"{case}/u"][j], data[f"{case}/v"][j], ang, float(data[f"{case}/K"]), params)
+            worst = max(worst, float(_rel_err(u, v, data[f"{case}/u"][j + 1], data[f"{case}/v"][j + 1])))
+    return worst
+
+
+def time_scipy(params: CavityParams, round_trips: int) -> float:
+    """Seconds per round trip of the reference, from the paper's sech start (transient + settling)."""
+    u, v = sech_fields(1, params, dtype=torch.complex128)
+    u, v = u[0].numpy(), v[0].numpy()
+    ang = np.deg2rad(PAPER_ANGLES_DEG)
+    t0 = time.perf_counter()
+    for _ in range(round_trips):
+        u, v = ref.round_trip(u, v, ang, 0.1, params)
+    return (time.perf_counter() - t0) / round_trips
+
+
+def _batch_state(batch: int, params: CavityParams, dtype, device, warm: int = 10):
+    """A realistic batch: paper start, alpha1 spread over [-40, -10] deg, a few round trips in."""
+    u, v = sech_fields(batch, params, dtype=dtype, device=device)
+    a1 = torch.linspace(-40.0, -10.0, batch, dtype=torch.float64)
+    ang = torch.stack([a1] + [torch.full_like(a1, a) for a in PAPER_ANGLES_DEG[1:]], -1)
+    ang = torch.deg2rad(ang).to(device)
+    K = torch.full((batch,), 0.1, dtype=torch.float64, device=device)
+    for _ in range(warm):
+        u, v = round_trip(u, v, ang, K, params)
+    return u, v, ang, K
+
+
+def time_torch(batch: int, params: CavityParams, dtype, device, compile: bool, min_seconds: float):
+    """(seconds per batched round trip, first-call seconds incl. compilation)."""
+    u, v, ang, K = _batch_state(batch, params, dtype, device)
+    t0 = time.perf_counter()
+    u, v = round_trip(u, v, ang, K, params, compile=compile)
+    first = time.perf_counter() - t0
+    u, v = round_trip(u, v, ang, K, params, compile=compile)
+    reps, elapsed = 0, 0.0
+    t0 = time.perf_counter()
+    while elapsed < min_seconds or reps < 3:
+        u, v = round_trip(u, v, ang, K, params, compile=compile)
+        if u.is_cuda:
+            torch.cuda.synchronize()
+        reps += 1
+        elapsed = time.perf_counter() - t0
+    return elapsed / reps, first
+
+
+def time_fft_bound(batch: int, params: CavityParams, dtype, device) -> float:
+    """Seconds per round trip spent in FFTs alone: 12 z_steps stages x (ifft + fft) of (B, 2, n)."""
+    x = torch.randn(batch, 2, params.n, dtype=dtype, device=device)
+    for _ in range(3):
+        torch.fft.fft(torch.fft.ifft(x))
+    reps = max(5, 20000 // batch)
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        torch.fft.fft(torch.fft.ifft(x))
+    if x.is_cuda:
+        torch.cuda.synchronize()
+    pair = (time.perf_counter() - t0) / reps
+    return pair * STAGES * params.z_steps
+
+
+def machine_line() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return (f"{cpu}, {os.cpu_count()} cores, torch {torch.__version__} ({torch.get_num_threads()} threads), "
+            f"Python {platform.python_version()}, {platform.system()}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="laserrl-bench", description=__doc__.split("\n")[0])
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 64, 256, 1024])
+    parser.add_argument("--scipy-round-trips", type=int, default=40)
+    parser.add_argument("--min-seconds", type=float, default=3.0, help="time each batch size at least this long")
+    parser.add_argument("--no-compile", action="store_true", help="time the eager solver instead of the compiled one")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--skip-accuracy", action="store_true")
+    args = parser.parse_args(argv)
+    for b in args.batch_sizes:
+        if b < 1:
+            parser.error(f"--batch-sizes must be positive, got {b}")
+    torch.set_num_threads(args.threads or os.cpu_count() or 1)
+    params = CavityParams()
+    dtype = torch.complex64
+    compile = not args.no_compile
+    print(f"machine: {machine_line()}")
+    print(f"settings: complex64, z_steps={params.z_steps} (DOP853, {STAGES * params.z_steps} stage evaluations per round trip), "
+          f"{'compiled' if compile else 'eager'}, device {args.device}")
+
+    data = None if args.skip_accuracy else _reference_data()
+    acc_torch = acc_scipy = float("nan")
+    if data is not None:
+        acc_torch = torch_accuracy(data, params)
+        acc_scipy = scipy_accuracy(data, params)
+
+    t_ref = time_scipy(params, args.scipy_round_trips)
+    ref_rate = 1.0 / t_ref
+    rows = [("scipy DOP853 (rtol 1e-3), 1 cavity", 1, ref_rate, 1.0, float("nan"), acc_scipy, float("nan"))]
+    for batch in args.batch_sizes:
+        per_rt, first = time_torch(batch, params, dtype, args.device, compile, args.min_seconds)
+        fft_rt = time_fft_bound(batch, params, dtype, args.device)
+        rate = batch / per_rt
+        rows.append((f"torch batch {batch}", batch, rate, rate / ref_rate, batch / fft_rt, acc_torch, first))
+        print(f"  measured batch {batch}: {rate:,.0f} round trips/s", file=sys.stderr, flush=True)
+
+    print()
+    print("| solver | batch | cavity round trips / s | x scipy | FFT-bound round trips / s | max rel. error vs reference | first call (s) |")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    for name, batch, rate, ratio, bound, acc, first in rows:
+        fmt = lambda x, f: "-" if (isinstance(x, float) and math.isnan(x)) else format(x, f)  # noqa: E731
+        print(f"| {name} | {batch} | {rate:,.0f} | {fmt(ratio, ',.0f')} | {fmt(bound, ',.0f')} | {fmt(acc, '.1e')} | {fmt(first, '.1f')} |")
+    best = max(rows[1:], key=lambda r: r[2])
+    print()
+    print(f"best: {best[2]:,.0f} cavity round trips/s at batch {best[1]} = {best[3]:,.0f}x the scipy reference "
+          f"({t_ref * 1e3:.1f} ms per round trip); FFTs alone would allow {best[4]:,.0f}/s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,46 @@
+"""Figures next to a run: training curves (paper fig. 2) and per-start reward
+trajectories with angle paths (paper fig. 3)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+
+def plot_training(history: list[dict], path: str | Path) -> Path:
+    frames = [h["frames"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    ep = [(h["frames"], h["train/episode_final_r"]) for h in history if "train/episode_final_r" in h]
+    if ep:
+        axes[0].plot(*zip(*ep), ".-", ms=3)
+    axes[0].set(xlabel="frames", ylabel="final r of finished episodes", title="(a) reward")
+    axes[1].plot(frames, [h["train/loss"] for h in history])
+    axes[1].set(xlabel="frames", ylabel="TD loss", title="(b) loss", yscale="log")
+    axes[2].plot(frames, [h["train/epsilon"] for h in history])
+    axes[2].set(xlabel="frames", ylabel="epsilon", title="exploration")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_eval(result: dict, path: str | Path) -> Path:
+    per = result["per_start"]
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4))
+    cmap = plt.get_cmap("viridis")
+    for i, p in enumerate(per):
+        color = cmap(i / max(1, len(per) - 1))
+        steps = range(1, len(p["reward_path"]) + 1)
+        axes[0].plot(steps, p["reward_path"], color=color, lw=1)
+        axes[1].plot(steps, [a[0] for a in p["angle_path_deg"]], color=color, lw=1)
+    axes[0].axhline(result["success_r"], color="k", ls="--", lw=0.8)
+    axes[0].set(xlabel="step", ylabel="r", title=f"reward per start (success {result['success_rate']:.0%})")
+    axes[1].set(xlabel="step", ylabel=f"{per[0]['angle']} (deg)", title="angle path")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

@@ -1,0 +1,191 @@
+"""``laserrl-train``: double DQN on the batched laser env, configured by Hydra.
+
+Read top to bottom: build the env, the Q-network and TorchRL's DQN parts, collect
+with a TorchRL collector, learn from (prioritized) replay, evaluate, save.
+
+    laserrl-train                                  # paper's single-input task, K = 0.1
+    laserrl-train optim.lr=3e-4 env.num_envs=64    # any value from the command line
+    laserrl-train logger=csv                        # or tensorboard, none; wandb is offline by default
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import hydra
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_qnet,
+                                make_replay, make_target_updater)
+from laserrl.checkpoint import CheckpointError, save_checkpoint
+from laserrl.config import ConfigError, check_train_config, make_logger, user_errors
+from laserrl.envs.factory import make_env
+
+CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+
+
+def build_agent(cfg: DictConfig, env):
+    """Q-network, greedy actor, exploration policy, loss and target updater."""
+    spec = env.action_spec_unbatched
+    net = cfg.agent.network
+    qnet = make_qnet(int(spec.n), env.base_env.params.n if hasattr(env, "base_env") else env.params.n,
+                     net.channels, net.kernel_size, net.pool, net.hidden, net.negative_slope)
+    actor = make_actor(qnet, spec)
+    schedule = EpsilonSchedule(**cfg.agent.exploration)
+    policy, egreedy = make_exploration_policy(actor, spec, schedule)
+    loss = make_loss(actor, spec, cfg.agent.gamma, cfg.agent.loss_function)
+    target = make_target_updater(loss, **cfg.agent.target)
+    return qnet, actor, policy, egreedy, schedule, loss, target
+
+
+def make_collector(cfg: DictConfig, policy, seed: int):
+    """TorchRL collector over the batched env; ``collector.kind``: sync (one process) or multi_sync / multi_async."""
+    from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
+
+    env_fn = partial(make_env, OmegaConf.to_container(cfg.env, resolve=True),
+                     OmegaConf.to_container(cfg.stage, resolve=True), cfg.env.num_envs, seed, cfg.device)
+    common = dict(frames_per_batch=cfg.collector.frames_per_batch, total_frames=cfg.train.total_frames,
+                  init_random_frames=cfg.replay.init_random_frames, device=cfg.device)
+    if cfg.collector.kind == "sync":
+        return Collector(env_fn, policy, **common)
+    workers = int(cfg.collector.num_workers)
+    env_fn = partial(make_env, OmegaConf.to_container(cfg.env, resolve=True),
+                     OmegaConf.to_container(cfg.stage, resolve=True), cfg.env.num_envs, seed, cfg.device,
+                     threads=cfg.collector.worker_threads)
+    cls = MultiSyncCollector if cfg.collector.kind == "multi_sync" else MultiAsyncCollector
+    return cls([env_fn] * workers, policy, **common)
+
+
+def train(cfg: DictConfig) -> dict:
+    """Train, evaluate, checkpoint; returns the evaluation summary."""
+    check_train_config(cfg)
+    run_dir = Path(cfg.run_dir)
+    torch.manual_seed(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    started = time.perf_counter()
+
+    # --- env (only to read specs here; the collector builds its own) and agent
+    probe_env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
+                         1, cfg.seed, cfg.device)
+    qnet, actor, policy, egreedy, schedule, loss, target = build_agent(cfg, probe_env)
+    del probe_env
+    if cfg.init_from:
+        from laserrl.warmstart import warm_start  # curriculum / transfer (issue 4)
+
+        warm_start(qnet, cfg.init_from)
+        target.init_()  # the target network starts from the warm-started weights
+    optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
+    collector = make_collector(cfg, policy, cfg.seed)
+    logger = make_logger(cfg, run_dir)
+    if logger is not None:
+        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+
+    # --- loop: collect a batch, learn from replay, log
+    history: list[dict] = []
+    frames = updates = 0
+    max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
+    bar = tqdm(total=cfg.train.total_frames, unit="frames", disable=not cfg.train.progress, dynamic_ncols=True)
+    last_loss = float("nan")
+    for data in collector:
+        t_batch = time.perf_counter()
+        frames += data.numel()
+        replay.extend(data.reshape(-1))
+        egreedy.eps.fill_(schedule(frames))
+        if frames >= cfg.replay.init_random_frames:
+            n_updates = max(1, int(round(data.numel() * cfg.optim.updates_per_frame)))
+            for _ in range(n_updates):
+                sample = replay.sample()
+                losses = loss(sample)
+                optimizer.zero_grad(set_to_none=True)
+                losses["loss"].backward()
+                torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
+                optimizer.step()
+                target.step()
+                if cfg.replay.kind == "prioritized":
+                    replay.update_tensordict_priority(sample)
+                updates += 1
+                last_loss = float(losses["loss"].detach())
+        collector.update_policy_weights_()
+
+        # metrics: raw r (not the centred training reward), final r of finished episodes
+        r = data["next", "r"]
+        done = data["next", "done"]
+        record = {
+            "frames": frames, "updates": updates, "time_s": time.perf_counter() - started,
+            "train/r_mean": float(r.mean()), "train/loss": last_loss, "train/epsilon": float(egreedy.eps),
+            "train/round_trips_per_step": float(data["next", "round_trips"].float().mean()),
+        }
+        if bool(done.any()):
+            record["train/episode_final_r"] = float(r[done].mean())
+        record["time/learn_s"] = time.perf_counter() - t_batch
+        history.append(record)
+        if logger is not None:
+            for key, value in record.items():
+                if "/" in key and math.isfinite(value):
+                    logger.log_scalar(key, value, step=frames)
+        bar.update(data.numel())
+        bar.set_postfix(ep_r=f"{record.get('train/episode_final_r', float('nan')):.3f}", r=f"{record['train/r_mean']:.3f}",
+                        eps=f"{record['train/epsilon']:.2f}", refresh=False)
+        if time.perf_counter() - started > max_seconds:
+            tqdm.write(f"train.max_minutes={cfg.train.max_minutes} reached after {frames} frames; stopping")
+            break
+    bar.close()
+    collector.shutdown()
+    train_seconds = time.perf_counter() - started
+
+    # --- save, evaluate, plot
+    ckpt_path = run_dir / "checkpoints" / "last.pt"
+    save_checkpoint({
+        "qnet": qnet.state_dict(),
+        "target": target.loss_module.target_value_network_params.state_dict() if hasattr(target.loss_module, "target_value_network_params") else None,
+        "optimizer": optimizer.state_dict(),
+        "epsilon": float(egreedy.eps), "frames": frames, "updates": updates,
+        "num_actions": qnet.num_actions, "stage": cfg.stage.name,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+    }, ckpt_path)
+    (run_dir / "history.json").write_text(json.dumps(history))
+    summary = {"train_seconds": train_seconds, "frames": frames, "updates": updates, "checkpoint": str(ckpt_path)}
+    if cfg.eval.after_training:
+        from laserrl.evaluate import evaluate_checkpoint
+
+        result = evaluate_checkpoint(str(ckpt_path), cfg.eval, run_dir)
+        summary.update({f"eval/{k}": v for k, v in result.items() if not isinstance(v, (list, dict))})
+        if logger is not None:
+            for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock"):
+                if result.get(k) is not None and math.isfinite(result[k]):
+                    logger.log_scalar(f"eval/{k}", result[k], step=frames)
+    if cfg.train.plots:
+        from laserrl.plots import plot_training
+
+        plot_training(history, run_dir / "training_curves.png")
+    summary["time/total_s"] = time.perf_counter() - started
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    if logger is not None and hasattr(logger, "experiment") and cfg.logger.backend == "wandb":
+        logger.experiment.finish()
+    print(f"checkpoint: {ckpt_path}")
+    return summary
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
+def _hydra_main(cfg: DictConfig) -> float:
+    with user_errors("laserrl-train"):
+        summary = train(cfg)
+    metric = summary.get(cfg.metric)
+    return float(metric) if metric is not None else float("nan")
+
+
+def main() -> None:
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()
