@@ -1,0 +1,85 @@
+"""The real console scripts with tiny overrides: they run, write what they promise, and
+turn bad input into one clear line without a traceback."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+SMOKE = ["experiment=smoke", "env.physics.n=64", "env.physics.z_steps=2"]
+
+
+def run(cmd, *args, cwd):
+    exe = Path(sys.executable).parent / cmd
+    return subprocess.run([str(exe), *args], cwd=cwd, capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("train")
+    res = run("laserrl-train", *SMOKE, f"hydra.run.dir={out}", cwd=out)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return out, res
+
+
+def test_train_writes_checkpoint_eval_and_prints_path(trained):
+    out, res = trained
+    ckpt = out / "checkpoints" / "last.pt"
+    assert f"checkpoint: {ckpt}" in res.stdout
+    state = torch.load(ckpt, weights_only=False)
+    for key in ("qnet", "target", "optimizer", "epsilon", "frames", "updates", "config"):
+        assert key in state
+    assert state["frames"] >= 64 and state["config"]["stage"]["name"] == "siso"
+    result = json.loads((out / "eval.json").read_text())
+    assert len(result["per_start"]) == 2 and 0.0 <= result["success_rate"] <= 1.0
+    assert all(len(p["angle_path_deg"]) == 3 for p in result["per_start"])
+
+
+def test_eval_entry_point_on_a_checkpoint_at_another_K(trained, tmp_path):
+    out, _ = trained
+    res = run("laserrl-eval", f"checkpoint={out}", "eval.K=0.2", "eval.steps=2", "eval.starts_deg=[-30]",
+              "eval.compile=false", "eval.plots=false", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["K"] == [0.2] and result["per_start"][0]["K"] == 0.2
+    assert f"eval: {tmp_path / 'eval.json'}" in res.stdout
+
+
+def _one_line_error(res, *words):
+    assert res.returncode != 0
+    assert "Traceback" not in res.stderr
+    lines = [line for line in res.stderr.splitlines() if "error" in line.lower()]
+    assert lines, res.stderr
+    for w in words:
+        assert w in res.stderr
+
+
+def test_missing_checkpoint(tmp_path):
+    res = run("laserrl-eval", f"checkpoint={tmp_path}/nope.pt", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "checkpoint not found")
+
+
+def test_incompatible_head(trained, tmp_path):
+    out, _ = trained
+    res = run("laserrl-eval", f"checkpoint={out}", "stage=duo", "eval.compile=false", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "3-action head", "9 actions")
+
+
+def test_truncated_checkpoint(trained, tmp_path):
+    out, _ = trained
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes((out / "checkpoints" / "last.pt").read_bytes()[:500])
+    res = run("laserrl-eval", f"checkpoint={bad}", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "unreadable")
+
+
+def test_unknown_key_and_wrong_type(tmp_path):
+    res = run("laserrl-train", "optim.nosuchkey=1", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "nosuchkey")
+    res = run("laserrl-train", *SMOKE, "optim.lr=fast", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "optim.lr")
+    res = run("laserrl-train", *SMOKE, "env.num_envs=0", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "env.num_envs")
+    assert not (tmp_path / "checkpoints").exists()
