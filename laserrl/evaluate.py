@@ -145,12 +145,7 @@ def _hydra_main(cfg: DictConfig) -> float:
     with user_errors("laserrl-eval"):
         if cfg.checkpoint is None or cfg.checkpoint == "":
             raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH")
-        stage = None
-        if cfg.stage:
-            path = Path(CONF_DIR) / "stage" / f"{cfg.stage}.yaml"
-            if not path.exists():
-                raise ConfigError(f"unknown stage {cfg.stage!r}; stages: {sorted(p.stem for p in path.parent.glob('*.yaml'))}")
-            stage = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+        stage = OmegaConf.to_container(cfg.stage, resolve=True) if cfg.get("stage") else None
         result = evaluate_checkpoint(cfg.checkpoint, OmegaConf.to_container(cfg.eval, resolve=True), cfg.run_dir, stage)
     return float(result["success_rate"])
 
