@@ -94,7 +94,7 @@ def train(cfg: DictConfig) -> dict:
     frames = updates = 0
     max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
     bar = tqdm(total=cfg.train.total_frames, unit="frames", disable=not cfg.train.progress, dynamic_ncols=True)
-    last_loss = float("nan")
+    last_loss = last_episode_r = float("nan")
     for data in collector:
         t_batch = time.perf_counter()
         frames += data.numel()
@@ -125,7 +125,7 @@ def train(cfg: DictConfig) -> dict:
             "train/round_trips_per_step": float(data["next", "round_trips"].float().mean()),
         }
         if bool(done.any()):
-            record["train/episode_final_r"] = float(r[done].mean())
+            record["train/episode_final_r"] = last_episode_r = float(r[done].mean())
         record["time/learn_s"] = time.perf_counter() - t_batch
         history.append(record)
         if logger is not None:
@@ -133,7 +133,7 @@ def train(cfg: DictConfig) -> dict:
                 if "/" in key and math.isfinite(value):
                     logger.log_scalar(key, value, step=frames)
         bar.update(data.numel())
-        bar.set_postfix(ep_r=f"{record.get('train/episode_final_r', float('nan')):.3f}", r=f"{record['train/r_mean']:.3f}",
+        bar.set_postfix(ep_r=f"{last_episode_r:.3f}", r=f"{record['train/r_mean']:.3f}",
                         eps=f"{record['train/epsilon']:.2f}", refresh=False)
         if time.perf_counter() - started > max_seconds:
             tqdm.write(f"train.max_minutes={cfg.train.max_minutes} reached after {frames} frames; stopping")
