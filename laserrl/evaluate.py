@@ -13,7 +13,6 @@ run directory and prints its path.
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any, Mapping
 

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import sys
 import time
 from functools import partial
 from pathlib import Path
@@ -24,8 +22,8 @@ from tqdm import tqdm
 
 from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_qnet,
                                 make_replay, make_target_updater)
-from laserrl.checkpoint import CheckpointError, save_checkpoint
-from laserrl.config import ConfigError, check_train_config, make_logger, user_errors
+from laserrl.checkpoint import save_checkpoint
+from laserrl.config import check_train_config, make_logger, user_errors
 from laserrl.envs.factory import make_env
 
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
@@ -35,8 +33,8 @@ def build_agent(cfg: DictConfig, env):
     """Q-network, greedy actor, exploration policy, loss and target updater."""
     spec = env.action_spec_unbatched
     net = cfg.agent.network
-    qnet = make_qnet(int(spec.n), env.base_env.params.n if hasattr(env, "base_env") else env.params.n,
-                     net.channels, net.kernel_size, net.pool, net.hidden, net.negative_slope)
+    qnet = make_qnet(int(spec.n), cfg.env.physics.n, net.channels, net.kernel_size, net.pool, net.hidden,
+                     net.negative_slope)
     actor = make_actor(qnet, spec)
     schedule = EpsilonSchedule(**cfg.agent.exploration)
     policy, egreedy = make_exploration_policy(actor, spec, schedule)
@@ -49,18 +47,17 @@ def make_collector(cfg: DictConfig, policy, seed: int):
     """TorchRL collector over the batched env; ``collector.kind``: sync (one process) or multi_sync / multi_async."""
     from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 
-    env_fn = partial(make_env, OmegaConf.to_container(cfg.env, resolve=True),
-                     OmegaConf.to_container(cfg.stage, resolve=True), cfg.env.num_envs, seed, cfg.device)
-    common = dict(frames_per_batch=cfg.collector.frames_per_batch, total_frames=cfg.train.total_frames,
-                  init_random_frames=cfg.replay.init_random_frames, device=cfg.device)
-    if cfg.collector.kind == "sync":
-        return Collector(env_fn, policy, **common)
-    workers = int(cfg.collector.num_workers)
+    multi = cfg.collector.kind != "sync"
+    # a partial of plain dicts pickles, so spawned workers can rebuild the env
     env_fn = partial(make_env, OmegaConf.to_container(cfg.env, resolve=True),
                      OmegaConf.to_container(cfg.stage, resolve=True), cfg.env.num_envs, seed, cfg.device,
-                     threads=cfg.collector.worker_threads)
+                     threads=cfg.collector.worker_threads if multi else None)
+    common = dict(frames_per_batch=cfg.collector.frames_per_batch, total_frames=cfg.train.total_frames,
+                  init_random_frames=cfg.replay.init_random_frames, device=cfg.device)
+    if not multi:
+        return Collector(env_fn, policy, **common)
     cls = MultiSyncCollector if cfg.collector.kind == "multi_sync" else MultiAsyncCollector
-    return cls([env_fn] * workers, policy, **common)
+    return cls([env_fn] * int(cfg.collector.num_workers), policy, **common)
 
 
 def train(cfg: DictConfig) -> dict:
@@ -78,7 +75,7 @@ def train(cfg: DictConfig) -> dict:
     qnet, actor, policy, egreedy, schedule, loss, target = build_agent(cfg, probe_env)
     del probe_env
     if cfg.init_from:
-        from laserrl.warmstart import warm_start  # curriculum / transfer (issue 4)
+        from laserrl.warmstart import warm_start
 
         warm_start(qnet, cfg.init_from)
         target.init_()  # the target network starts from the warm-started weights

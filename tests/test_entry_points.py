@@ -100,3 +100,13 @@ def test_train_variants_run_and_log(tmp_path, extra):
         assert list((tmp_path / "logs").rglob("events.out.tfevents*"))
     if "logger=wandb" in extra:
         assert list(tmp_path.rglob("offline-run-*"))
+
+
+def test_warm_start_from_a_checkpoint_and_refusal_of_another_head(trained, tmp_path):
+    out, _ = trained
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", f"hydra.run.dir={tmp_path / 'ok'}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", "stage=duo", "stage.max_steps=3",
+              f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path)
+    _one_line_error(res, "3-action head", "9 actions")
+    assert not (tmp_path / "bad" / "checkpoints").exists()
