@@ -72,6 +72,30 @@ def check_train_config(cfg: DictConfig) -> None:
         raise ConfigError(f"logger.mode must be offline, online or disabled, got {cfg.logger.mode!r}")
 
 
+def flat_config(cfg: DictConfig) -> dict:
+    """Resolved config as {"optim.lr": 0.001, ...} with scalar values (TensorBoard's hparams need them)."""
+    out: dict = {}
+
+    def walk(node, prefix):
+        if isinstance(node, dict):
+            for k, v in node.items():
+                walk(v, f"{prefix}{k}.")
+        else:
+            key = prefix[:-1]
+            out[key] = node if isinstance(node, (int, float, str, bool)) and node is not None else str(node)
+
+    walk(OmegaConf.to_container(cfg, resolve=True), "")
+    return out
+
+
+def log_config(logger, cfg: DictConfig) -> None:
+    """Log the resolved config: nested for W&B, flattened for the other backends."""
+    if cfg.logger.backend == "wandb":
+        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+    else:
+        logger.log_hparams(flat_config(cfg))
+
+
 def make_logger(cfg: DictConfig, run_dir: Path):
     """TorchRL logger writing into the run directory (wandb offline needs no account or network)."""
     from torchrl.record.loggers import CSVLogger, TensorboardLogger, WandbLogger

@@ -23,7 +23,7 @@ from tqdm import tqdm
 from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_qnet,
                                 make_replay, make_target_updater)
 from laserrl.checkpoint import save_checkpoint
-from laserrl.config import check_train_config, make_logger, user_errors
+from laserrl.config import check_train_config, log_config, make_logger, user_errors
 from laserrl.envs.factory import make_env
 
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
@@ -84,7 +84,7 @@ def train(cfg: DictConfig) -> dict:
     collector = make_collector(cfg, policy, cfg.seed)
     logger = make_logger(cfg, run_dir)
     if logger is not None:
-        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+        log_config(logger, cfg)
 
     # --- loop: collect a batch, learn from replay, log
     history: list[dict] = []

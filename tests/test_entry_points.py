@@ -86,19 +86,19 @@ def test_unknown_key_and_wrong_type(tmp_path):
 
 
 @pytest.mark.parametrize("extra", [["collector=multi_sync", "collector.num_workers=2", "collector.frames_per_batch=16", "env.num_envs=8"],
-                                   ["logger=csv"], ["logger=tensorboard"],
-                                   ["logger=wandb", "replay=uniform", "agent.target.kind=hard", "agent.exploration.kind=linear"]])
+                                   ["logger.backend=csv"], ["logger.backend=tensorboard"],
+                                   ["logger.backend=wandb", "replay=uniform", "agent.target.kind=hard", "agent.exploration.kind=linear"]])
 def test_train_variants_run_and_log(tmp_path, extra):
     res = run("laserrl-train", *SMOKE, *extra, f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert (tmp_path / "checkpoints" / "last.pt").exists()
-    if "logger=csv" in extra:
+    if "logger.backend=csv" in extra:
         scalars = tmp_path / "logs"
         names = {p.relative_to(next(scalars.iterdir()) / "scalars").as_posix() for p in scalars.rglob("*.csv")}
         assert {"train/r_mean.csv", "train/epsilon.csv", "eval/mean_final_reward.csv"} <= names
-    if "logger=tensorboard" in extra:
+    if "logger.backend=tensorboard" in extra:
         assert list((tmp_path / "logs").rglob("events.out.tfevents*"))
-    if "logger=wandb" in extra:
+    if "logger.backend=wandb" in extra:
         assert list(tmp_path.rglob("offline-run-*"))
 
 
