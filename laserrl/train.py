@@ -77,7 +77,7 @@ def train(cfg: DictConfig) -> dict:
     if cfg.init_from:
         from laserrl.warmstart import warm_start
 
-        warm_start(qnet, cfg.init_from)
+        warm_start(qnet, cfg.init_from, list(cfg.stage.controlled))
         target.init_()  # the target network starts from the warm-started weights
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
@@ -172,10 +172,50 @@ def train(cfg: DictConfig) -> dict:
     return summary
 
 
+def run_curriculum(cfg: DictConfig) -> dict:
+    """Train ``curriculum.stages`` in order, each warm-started from the previous stage's
+    checkpoint (the Q-head grows by ``laserrl.warmstart.head_mapping``); every stage runs
+    in its own sub-directory ``NN-stage`` of the run directory."""
+    from laserrl.config import ConfigError
+
+    stages = list(cfg.curriculum.stages)
+    per_stage = {key: list(cfg.curriculum[key]) for key in ("total_frames", "max_minutes", "eval_steps", "eval_starts_deg")
+                 if cfg.curriculum.get(key) is not None}
+    for key, values in per_stage.items():
+        if len(values) != len(stages):
+            raise ConfigError(f"curriculum.{key} needs one entry per stage ({len(stages)}), got {len(values)}")
+    previous = cfg.init_from
+    summary: dict = {}
+    for i, name in enumerate(stages):
+        path = Path(CONF_DIR) / "stage" / f"{name}.yaml"
+        if not path.exists():
+            raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: "
+                              f"{sorted(p.stem for p in path.parent.glob('*.yaml'))}")
+        stage_cfg = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
+        sub = OmegaConf.to_container(cfg, resolve=True)
+        sub.pop("curriculum")
+        sub["stage"] = OmegaConf.to_container(stage_cfg, resolve=True)
+        sub["run_dir"] = str(Path(cfg.run_dir) / f"{i + 1:02d}-{name}")
+        sub["init_from"] = previous
+        for key, values in per_stage.items():
+            if key == "total_frames":
+                sub["train"]["total_frames"] = values[i]
+            elif key == "max_minutes":
+                sub["train"]["max_minutes"] = values[i]
+            elif key == "eval_steps":
+                sub["eval"]["steps"] = values[i]
+            else:
+                sub["eval"]["starts_deg"] = values[i]
+        print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
+        summary = train(OmegaConf.create(sub))
+        previous = summary["checkpoint"]
+    return summary
+
+
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> float:
     with user_errors("laserrl-train"):
-        summary = train(cfg)
+        summary = run_curriculum(cfg) if cfg.get("curriculum") else train(cfg)
     metric = summary.get(cfg.metric)
     return float(metric) if metric is not None else float("nan")
 

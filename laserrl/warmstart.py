@@ -1,23 +1,75 @@
-"""Warm-starting a Q-network from a checkpoint."""
+"""Warm-starting a Q-network from a checkpoint, across stages of the curriculum.
+
+Every stage sees the same observation (the four fields and all four angles), so every
+layer keeps its shape except the Q-head, which has 3^m outputs for m controlled angles.
+
+Rule for a grown head: a new joint action inherits the Q-value row (weights and bias of
+the last layer) of the old joint action that moves the *old* controlled angles the same
+way. E.g. from ``siso`` (alpha1) to ``duo`` (alpha1, alpha2): the new actions
+"alpha1 up, alpha2 down/hold/up" all start from the old "alpha1 up". The new angles'
+moves therefore start indifferent, and the learned alpha1 behaviour carries over.
+"""
 from __future__ import annotations
+
+from typing import Sequence
+
+import torch
 
 from laserrl.agents.qnet import FieldQNet
 from laserrl.checkpoint import CheckpointError, load_checkpoint
 
+__all__ = ["warm_start", "head_mapping"]
 
-def warm_start(qnet: FieldQNet, checkpoint: str) -> dict:
-    """Copy a checkpoint's Q-network weights into ``qnet`` (same architecture and head).
 
-    A head of another size (a checkpoint of another stage) is refused with a clear error.
+def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> torch.Tensor:
+    """For every new joint action, the index of the old joint action it inherits from.
+
+    Actions use ``laserrl.envs.action_to_deltas``'s encoding (base 3, first controlled
+    angle least significant). Requires the old angles to be a subset of the new ones.
+    """
+    missing = [a for a in old_controlled if a not in new_controlled]
+    if missing:
+        raise CheckpointError(f"cannot grow the Q-head: the checkpoint controls {list(old_controlled)}, "
+                              f"this stage controls {list(new_controlled)} (missing {missing})")
+    m_new = len(new_controlled)
+    new_actions = torch.arange(3**m_new)
+    digits = torch.stack([(new_actions // 3**j) % 3 for j in range(m_new)], -1)  # (A_new, m_new)
+    old = torch.zeros_like(new_actions)
+    for i, name in enumerate(old_controlled):
+        old += digits[:, list(new_controlled).index(name)] * 3**i
+    return old
+
+
+def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | None = None) -> dict:
+    """Copy a checkpoint's Q-network into ``qnet``; grow the head by ``head_mapping`` if needed.
+
+    Args:
+        qnet: the new network (its head may be larger than the checkpoint's).
+        checkpoint: path of a checkpoint or run directory.
+        controlled: the angles the new stage controls (needed only when the head grows).
     """
     state = load_checkpoint(checkpoint)
-    if int(state["num_actions"]) != qnet.num_actions:
-        raise CheckpointError(
-            f"checkpoint {state['path']} has a {state['num_actions']}-action head (stage {state.get('stage')}); "
-            f"this task needs {qnet.num_actions} actions"
-        )
+    weights = dict(state["qnet"])
+    old_n, new_n = int(state["num_actions"]), qnet.num_actions
+    old_controlled = list(state["config"].get("stage", {}).get("controlled", []))
+    refuse = CheckpointError(
+        f"checkpoint {state['path']} has a {old_n}-action head for {old_controlled or 'unknown angles'} "
+        f"(stage {state.get('stage')}); this task needs {new_n} actions"
+        + (f" for {list(controlled)}" if controlled is not None else "")
+    )
+    if controlled is not None and old_controlled and old_controlled != list(controlled):
+        if not set(old_controlled) < set(controlled):
+            raise refuse
+    elif old_n != new_n:
+        raise refuse
+    if old_n != new_n:
+        index = head_mapping(old_controlled, list(controlled))
+        last = max(int(k.split(".")[1]) for k in weights if k.startswith("head."))
+        for suffix in ("weight", "bias"):
+            key = f"head.{last}.{suffix}"
+            weights[key] = weights[key][index]
     try:
-        qnet.load_state_dict(state["qnet"])
+        qnet.load_state_dict(weights)
     except RuntimeError as err:
         raise CheckpointError(f"checkpoint {state['path']} does not match this network: {str(err).splitlines()[0]}") from None
     return state

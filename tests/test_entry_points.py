@@ -102,11 +102,31 @@ def test_train_variants_run_and_log(tmp_path, extra):
         assert list(tmp_path.rglob("offline-run-*"))
 
 
-def test_warm_start_from_a_checkpoint_and_refusal_of_another_head(trained, tmp_path):
+def test_warm_start_same_stage_grown_stage_and_refusal(trained, tmp_path):
     out, _ = trained
     res = run("laserrl-train", *SMOKE, f"init_from={out}", f"hydra.run.dir={tmp_path / 'ok'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
-    res = run("laserrl-train", *SMOKE, f"init_from={out}", "stage=duo", "stage.max_steps=3",
+    # siso -> duo: the head grows from 3 to 9 actions by the documented rule
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", "stage=duo", "stage.max_steps=3", "eval.steps=2",
+              f"hydra.run.dir={tmp_path / 'duo'}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert torch.load(tmp_path / "duo" / "checkpoints" / "last.pt", weights_only=False)["num_actions"] == 9
+    # alpha1 actions cannot become alpha2 actions
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", "stage.controlled=[alpha2]",
               f"hydra.run.dir={tmp_path / 'bad'}", cwd=tmp_path)
-    _one_line_error(res, "3-action head", "9 actions")
+    _one_line_error(res, "3-action head", "['alpha2']")
     assert not (tmp_path / "bad" / "checkpoints").exists()
+
+
+def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
+    # experiment=smoke keeps it tiny; the curriculum keys are those of experiment=curriculum
+    res = run("laserrl-train", *SMOKE, "+curriculum.stages=[siso,duo]",
+              "+curriculum.total_frames=[32,32]", "+curriculum.max_minutes=[null,null]", "+curriculum.eval_steps=[2,2]",
+              "+curriculum.eval_starts_deg=[[-30],null]", "+curriculum.stage_overrides.duo.max_steps=3",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    first = torch.load(tmp_path / "01-siso" / "checkpoints" / "last.pt", weights_only=False)
+    second = torch.load(tmp_path / "02-duo" / "checkpoints" / "last.pt", weights_only=False)
+    assert (first["num_actions"], second["num_actions"]) == (3, 9)
+    assert second["config"]["init_from"] == str(tmp_path / "01-siso" / "checkpoints" / "last.pt")
+    assert res.stdout.index("stage 1/2: siso") < res.stdout.index("stage 2/2: duo")

@@ -1,0 +1,48 @@
+import pytest
+import torch
+
+from laserrl.agents import FieldQNet
+from laserrl.checkpoint import CheckpointError, save_checkpoint
+from laserrl.envs import action_to_deltas
+from laserrl.warmstart import head_mapping, warm_start
+
+
+def test_head_mapping_inherits_the_old_action_that_moves_old_angles_alike():
+    old, new = ["alpha1"], ["alpha1", "alpha2"]
+    index = head_mapping(old, new)
+    steps_new, steps_old = torch.ones(2), torch.ones(1)
+    for a in range(9):
+        moves_new = action_to_deltas(torch.tensor(a), steps_new)
+        moves_old = action_to_deltas(index[a], steps_old)
+        assert moves_new[0] == moves_old[0]
+    # to four controllers, from two: alpha1 and alpha2 keep their moves
+    index = head_mapping(new, ["alpha1", "alpha2", "alpha3", "alpha_p"])
+    for a in range(81):
+        moves = action_to_deltas(torch.tensor(a), torch.ones(4))
+        assert torch.equal(action_to_deltas(index[a], torch.ones(2)), moves[:2])
+    with pytest.raises(CheckpointError, match="missing"):
+        head_mapping(["alpha3"], ["alpha1", "alpha2"])
+
+
+def _checkpoint(tmp_path, qnet, controlled):
+    return str(save_checkpoint({"qnet": qnet.state_dict(), "num_actions": qnet.num_actions, "stage": "s",
+                                "config": {"stage": {"controlled": controlled}}}, tmp_path / "c.pt"))
+
+
+def test_grown_network_reproduces_old_q_values_and_copies_other_layers(tmp_path):
+    torch.manual_seed(0)
+    old = FieldQNet(3)
+    path = _checkpoint(tmp_path, old, ["alpha1"])
+    new = FieldQNet(9)
+    warm_start(new, path, ["alpha2", "alpha1"])  # order of the new stage need not match
+    fields, angles = torch.randn(5, 4, 256), torch.randn(5, 4)
+    q_old, q_new = old(fields, angles), new(fields, angles)
+    index = head_mapping(["alpha1"], ["alpha2", "alpha1"])
+    torch.testing.assert_close(q_new, q_old[:, index])
+    torch.testing.assert_close(new.features[0].weight, old.features[0].weight)
+
+
+def test_incompatible_heads_are_refused(tmp_path):
+    path = _checkpoint(tmp_path, FieldQNet(9), ["alpha1", "alpha2"])
+    with pytest.raises(CheckpointError, match="9-action head"):
+        warm_start(FieldQNet(3), path, ["alpha1"])
