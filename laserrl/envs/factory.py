@@ -16,12 +16,7 @@ TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "init_fields", "
 
 def make_task(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], **overrides) -> LaserTask:
     """LaserTask from the ``env`` (numerics) and ``stage`` (what is controlled) config groups."""
-    kwargs = {k: stage_cfg[k] for k in TASK_KEYS if k in stage_cfg}
-    if isinstance(kwargs.get("K"), (list, tuple)) or (hasattr(kwargs.get("K"), "__len__") and not isinstance(kwargs.get("K"), str)):
-        kwargs["K"] = tuple(kwargs["K"])
-    if "init_angles_deg" in kwargs:
-        kwargs["init_angles_deg"] = {k: (tuple(v) if not isinstance(v, (int, float)) else v)
-                                     for k, v in dict(kwargs["init_angles_deg"]).items()}
+    kwargs = {k: stage_cfg[k] for k in TASK_KEYS if k in stage_cfg}  # LaserTask takes lists as ranges
     kwargs.update(max_round_trips=env_cfg["max_round_trips"], tol=env_cfg.get("tol"), dtype=env_cfg["dtype"],
                   compile=env_cfg["compile"])
     kwargs.update(overrides)

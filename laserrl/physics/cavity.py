@@ -172,21 +172,11 @@ class _Step:
         omega = power.square().sum(-1) / power.sum(-1).clamp_min(1e-30)
         rate = omega[:, None] - K[:, None] * self.sign.squeeze(-1)  # (B, 2) scalar rotation rates
         kr, ki, gs = [], [], []
+        g_lo = g_hi = None
         for i in range(_STAGES):
             if i > 0:
-                yr, yi, G = wr, wi, torch.zeros_like(omega)
-                for j, a in self.a[i]:
-                    yr = yr + a * kr[j]
-                    yi = yi + a * ki[j]
-                    G = G + a * gs[j]
-                # G(s) = int_0^s g lies between s*min(g) and s*max(g). The tableau's large
-                # coefficients (|a| sums up to ~96) can throw the estimate far outside when
-                # g changes fast within a step, and exp(G S) with S ~ -17 then overflows;
-                # clamping to the bracket keeps the factor finite and is inactive otherwise.
-                s_i = self.offsets[i]
-                G = torch.minimum(torch.maximum(G, s_i * g_lo), s_i * g_hi)
-                fr, fi, amp = self._factor(i, G, rate)
-                xr, xi = _ifft_planar((yr * fr - yi * fi) * amp, (yr * fi + yi * fr) * amp)
+                fr, fi, amp, yr, yi = self._map_stage(i, self.a[i], wr, wi, kr, ki, gs, g_lo, g_hi, rate)
+                xr, xi = _ifft_planar(yr, yi)
             nr, ni, g = self._kerr(xr[:, 0], xi[:, 0], xr[:, 1], xi[:, 1], omega)
             nr, ni = _fft_planar(nr, ni)
             if i > 0:  # multiply by the inverse factor conj(f) / amp
@@ -195,23 +185,35 @@ class _Step:
             ki.append(ni)
             gs.append(g)
             g_lo, g_hi = (g, g) if i == 0 else (torch.minimum(g_lo, g), torch.maximum(g_hi, g))
-        yr, yi, G = wr, wi, torch.zeros_like(omega)
-        for j, b in self.b:
-            yr = yr + b * kr[j]
-            yi = yi + b * ki[j]
-            G = G + b * gs[j]
-        G = torch.minimum(torch.maximum(G, self.offsets[-1] * g_lo), self.offsets[-1] * g_hi)
         # DOP853's embedded error estimate of this step (as in scipy), relative to |w|
         err5 = self._norm(self._combine(self.e5, kr, ki))
         err3 = self._norm(self._combine(self.e3, kr, ki))
         denom = torch.sqrt(err5.square() + 0.01 * err3.square()).clamp_min(1e-30)
-        error = err5.square() / denom / self._norm((yr, yi)).clamp_min(1e-30)
-        fr, fi, amp = self._factor(_STAGES, G, rate)
-        return (yr * fr - yi * fi) * amp, (yr * fi + yi * fr) * amp, error
+        wr_new, wi_new = self._combine(self.b, kr, ki, wr, wi)
+        error = err5.square() / denom / self._norm((wr_new, wi_new)).clamp_min(1e-30)
+        _, _, _, yr, yi = self._map_stage(_STAGES, self.b, wr, wi, kr, ki, gs, g_lo, g_hi, rate)
+        return yr, yi, error
+
+    def _map_stage(self, i: int, coefs, wr, wi, kr, ki, gs, g_lo, g_hi, rate):
+        """Interaction-picture state w + sum_j c_j k_j at offset s_i, mapped to the physical
+        Fourier field by exp(Lambda' s_i + G S); also returns the factor (fr, fi, amp)."""
+        yr, yi = self._combine(coefs, kr, ki, wr, wi)
+        G = 0.0
+        for j, c in coefs:
+            G = G + c * gs[j]
+        # G(s) = int_0^s g lies between s*min(g) and s*max(g). The tableau's large
+        # coefficients (|a| sums up to ~96) can throw the estimate far outside when
+        # g changes fast within a step, and exp(G S) with S ~ -17 then overflows;
+        # clamping to the bracket keeps the factor finite and is inactive otherwise.
+        s_i = self.offsets[i]
+        G = torch.minimum(torch.maximum(G, s_i * g_lo), s_i * g_hi)
+        fr, fi, amp = self._factor(i, G, rate)
+        return fr, fi, amp, (yr * fr - yi * fi) * amp, (yr * fi + yi * fr) * amp
 
     @staticmethod
-    def _combine(coefs, kr, ki):
-        er = ei = 0.0
+    def _combine(coefs, kr, ki, start_r=0.0, start_i=0.0):
+        """start + sum_j c_j k_j for (j, c) in coefs, as planar (re, im)."""
+        er, ei = start_r, start_i
         for j, c in coefs:
             er = er + c * kr[j]
             ei = ei + c * ki[j]
