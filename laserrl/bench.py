@@ -7,7 +7,8 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
 * the torch solver at the default settings (complex64, ``CavityParams().z_steps``)
   for each batch size, compiled unless ``--no-compile``;
 * the FFT-bound estimate: the time of the FFT pairs alone that one round trip needs
-  (12 DOP853 stages per step, one inverse and one forward FFT of both fields each);
+  (``fft_pairs_per_round_trip``: one inverse and one forward FFT of both fields per
+  Strang step, or per DOP853 stage);
 * accuracy: worst relative L2 error of one round trip against the stored
   high-accuracy reference solutions (``tests/data/cavity_reference.npz``).
 """
@@ -26,8 +27,8 @@ import torch
 
 from laserrl.physics import CavityParams, round_trip, sech_fields
 from laserrl.physics import reference as ref
+from laserrl.physics.cavity import fft_pairs_per_round_trip
 
-STAGES = 12  # DOP853
 PAPER_ANGLES_DEG = (-24.0, 3.0, 28.0, 88.0)
 
 
@@ -113,7 +114,7 @@ def time_torch(batch: int, params: CavityParams, dtype, device, compile: bool, m
 
 
 def time_fft_bound(batch: int, params: CavityParams, dtype, device) -> float:
-    """Seconds per round trip spent in FFTs alone: 12 z_steps stages x (ifft + fft) of (B, 2, n)."""
+    """Seconds per round trip spent in FFTs alone: (ifft + fft) of (B, 2, n) per evaluation."""
     x = torch.randn(batch, 2, params.n, dtype=dtype, device=device)
     for _ in range(3):
         torch.fft.fft(torch.fft.ifft(x))
@@ -124,7 +125,7 @@ def time_fft_bound(batch: int, params: CavityParams, dtype, device) -> float:
     if x.is_cuda:
         torch.cuda.synchronize()
     pair = (time.perf_counter() - t0) / reps
-    return pair * STAGES * params.z_steps
+    return pair * fft_pairs_per_round_trip(params)
 
 
 def machine_line() -> str:
@@ -158,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     dtype = torch.complex64
     compile = not args.no_compile
     print(f"machine: {machine_line()}")
-    print(f"settings: complex64, z_steps={params.z_steps} (DOP853, {STAGES * params.z_steps} stage evaluations per round trip), "
+    print(f"settings: complex64, integrator {params.integrator}, z_steps={params.z_steps} "
+          f"({fft_pairs_per_round_trip(params)} FFT pairs per round trip), "
           f"{'compiled' if compile else 'eager'}, device {args.device}")
 
     data = None if args.skip_accuracy else _reference_data()

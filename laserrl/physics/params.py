@@ -18,6 +18,10 @@ from dataclasses import dataclass
 import torch
 
 
+#: Integrators of the propagation over z (see ``CavityParams.integrator``).
+INTEGRATORS = ("split", "dop853")
+
+
 @dataclass(frozen=True)
 class CavityParams:
     """Physical constants, grid and integrator resolution of the cavity.
@@ -36,6 +40,11 @@ class CavityParams:
         z_steps: fixed integrator steps per round trip (numerical resolution, not
             physics). The default meets a relative L2 error <= 1e-4 per round trip
             against the DOP853 reference; see ``CavityParams.precise()``.
+        integrator: "split" (default): Strang splitting into exact linear and Kerr
+            flows, z_steps and 2 z_steps steps, Richardson-extrapolated to fourth order;
+            needs A + B = 1, for which the Kerr flow is exact. "dop853": the 12-stage
+            Dormand-Prince Runge-Kutta method in the interaction picture, z_steps steps;
+            any A, B; used by ``precise()``.
     """
 
     D: float = -0.4
@@ -48,10 +57,15 @@ class CavityParams:
     Z: float = 1.5
     T: float = 60.0
     n: int = 256
-    z_steps: int = 4
+    z_steps: int = 8
+    integrator: str = "split"
 
     def __post_init__(self) -> None:
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"CavityParams.integrator must be one of {INTEGRATORS}, got {self.integrator!r}")
         for f in dataclasses.fields(self):
+            if f.name == "integrator":
+                continue
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, (int, float)):
                 raise ValueError(f"CavityParams.{f.name} must be a number, got {value!r}")
@@ -75,14 +89,19 @@ class CavityParams:
             raise ValueError(f"CavityParams.g0 must be >= 0, got {self.g0!r}")
         if int(self.z_steps) != self.z_steps or self.z_steps < 1:
             raise ValueError(f"CavityParams.z_steps must be a positive integer, got {self.z_steps!r}")
+        if self.integrator == "split" and abs(self.A + self.B - 1.0) > 1e-9:
+            raise ValueError(
+                f"CavityParams.integrator='split' needs A + B = 1 (exact Kerr flow), got A={self.A!r}, "
+                f"B={self.B!r}; use integrator='dop853' for other values")
 
     @classmethod
     def precise(cls, **overrides) -> "CavityParams":
         """Resolution for reference-grade accuracy: use with complex128 fields.
 
         Meets a relative L2 error <= 1e-8 per round trip against the DOP853
-        reference solutions (``tests/physics/test_accuracy.py``).
+        reference solutions (``tests/physics/test_accuracy.py``): 32 steps of DOP853.
         """
+        overrides.setdefault("integrator", "dop853")
         overrides.setdefault("z_steps", 32)
         return cls(**overrides)
 

@@ -65,11 +65,11 @@ def test_n_accepted_iff_power_of_two_at_least_16(n):
             CavityParams(n=n)
 
 
-def test_precise_has_more_z_steps_and_same_physics():
+def test_precise_changes_numerics_only():
     default, precise = CavityParams(), CavityParams.precise()
-    assert precise.z_steps > default.z_steps
+    assert (precise.integrator, precise.z_steps) == ("dop853", 32)
     for f in dataclasses.fields(CavityParams):
-        if f.name != "z_steps":
+        if f.name not in ("z_steps", "integrator"):
             assert getattr(precise, f.name) == getattr(default, f.name), f.name
     # overrides are passed through
     assert CavityParams.precise(T=30.0).T == 30.0
@@ -106,3 +106,16 @@ def test_integral_float_n_and_z_steps_are_rejected_or_usable():
         return  # rejecting them up front is fine
     assert p.time_grid().shape == (256,)
     assert p.wavenumbers().shape == (256,)
+
+
+def test_unknown_integrator_is_named():
+    with pytest.raises(ValueError, match=r"CavityParams\.integrator"):
+        CavityParams(integrator="rk4")
+
+
+def test_split_integrator_needs_isotropic_kerr_coefficients():
+    # the exact Kerr flow of the split-step scheme exists only for A + B = 1
+    with pytest.raises(ValueError, match=r"integrator='split' needs A \+ B = 1"):
+        CavityParams(A=0.5, B=0.2)
+    assert CavityParams(A=0.5, B=0.2, integrator="dop853").A == 0.5
+    assert CavityParams(A=0.5, B=0.5).integrator == "split"
