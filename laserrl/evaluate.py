@@ -3,8 +3,10 @@
 Greedy rollouts of ``eval.steps`` (20) agent steps from every initial angle in
 ``eval.starts_deg`` (alpha1 in {-40, -38, ..., -10} deg), sech initial fields, at
 each K in ``eval.K`` (the checkpoint's K unless given). Success for one start:
-final r >= ``eval.success_r`` (0.18). Writes ``eval.json`` (and a plot) into the
-run directory and prints its path.
+final r >= ``eval.success_r`` (0.18), or, with ``eval.hold_r`` set, r reaches
+``success_r`` and never falls below ``hold_r`` afterwards. ``eval.repeats`` runs each start
+several times with its own initial noise. Writes ``eval.json`` (and a plot) into the run
+directory and prints its path.
 
     laserrl-eval checkpoint=outputs/2026-11-22/10-00-00/checkpoints/last.pt
     laserrl-eval checkpoint=RUN_DIR eval.K=0.2           # any K
@@ -31,8 +33,8 @@ from laserrl.envs.laser_env import ANGLE_NAMES
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
-def load_agent(state: Mapping[str, Any], action_spec):
-    """Rebuild the greedy actor of a checkpoint for an env with ``action_spec``."""
+def load_qnet(state: Mapping[str, Any], action_spec):
+    """Rebuild the Q-network of a checkpoint for an env with ``action_spec``."""
     cfg = state["config"]
     net = cfg["agent"]["network"]
     n_env = int(action_spec.n)
@@ -48,7 +50,12 @@ def load_agent(state: Mapping[str, Any], action_spec):
     except RuntimeError as err:
         raise CheckpointError(f"checkpoint {state.get('path')} does not match its network config: {str(err).splitlines()[0]}") from None
     qnet.eval()
-    return make_actor(qnet, action_spec)
+    return qnet
+
+
+def load_agent(state: Mapping[str, Any], action_spec):
+    """Rebuild the greedy actor of a checkpoint for an env with ``action_spec``."""
+    return make_actor(load_qnet(state, action_spec), action_spec)
 
 
 def _as_list(x) -> list[float]:
@@ -59,12 +66,46 @@ def _as_list(x) -> list[float]:
     return [float(v) for v in x]
 
 
-def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None) -> dict:
-    """Run the protocol; returns and writes the eval.json content."""
-    state = load_checkpoint(checkpoint)
-    cfg = state["config"]
-    stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
-    env_cfg = dict(cfg["env"])
+def success_mask(r: torch.Tensor, success_r: float, hold_r: float | None) -> torch.Tensor:
+    """Success per rollout from rewards r (B, steps).
+
+    hold_r None: final r >= success_r (the paper's single-input protocol).
+    Otherwise: r reaches success_r at some step and stays >= hold_r at every later step
+    (the four-controller bar: lock, then keep the lock for the rest of the episode).
+    """
+    if hold_r is None:
+        return r[:, -1] >= success_r
+    reached = r >= success_r  # (B, T)
+    # broken[t]: some step after t falls below hold_r
+    below = (r < hold_r).flip(-1).cumsum(-1).flip(-1)  # number of steps >= t below hold_r
+    later_below = torch.cat([below[:, 1:], torch.zeros_like(below[:, :1])], -1) > 0
+    return (reached & ~later_below).any(-1)
+
+
+def _stage_base_angles(stage_cfg: Mapping[str, Any]) -> list[float]:
+    base = []
+    for name in ANGLE_NAMES:
+        v = stage_cfg["init_angles_deg"][name]
+        base.append(float(v) if isinstance(v, (int, float)) else 0.5 * (float(v[0]) + float(v[1])))
+    return base
+
+
+def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any],
+                    eval_cfg: Mapping[str, Any], seed: int = 0) -> dict:
+    """Greedy rollouts of the evaluation protocol; returns the eval.json content.
+
+    ``policy_for_env(env)`` returns the TensorDict policy to roll out (it gets the env so
+    that it can read the action spec). Every combination of K in ``eval.K`` (the stage's K
+    if empty), first-controlled-angle start in ``eval.starts_deg`` (the stage's start if
+    empty) and ``eval.repeats`` copies runs as one batch; with noise initial fields each
+    copy draws its own noise from the env's seeded generator.
+    """
+    # eval.* values left null take the stage's own protocol
+    eval_cfg = {**dict(stage_cfg.get("protocol") or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
+    for key in ("steps", "success_r"):
+        if eval_cfg.get(key) is None:
+            raise ConfigError(f"eval.{key} is not set and stage {stage_cfg.get('name')!r} has no protocol.{key}")
+    env_cfg = dict(env_cfg)
     if eval_cfg.get("max_round_trips"):
         env_cfg["max_round_trips"] = int(eval_cfg["max_round_trips"])
     if eval_cfg.get("dtype"):
@@ -73,68 +114,151 @@ def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: s
     steps = int(eval_cfg["steps"])
     if steps < 1:
         raise ConfigError(f"eval.steps must be >= 1, got {steps}")
+    repeats = int(eval_cfg.get("repeats") or 1)
+    if repeats < 1:
+        raise ConfigError(f"eval.repeats must be >= 1, got {repeats}")
     threshold = float(eval_cfg["success_r"])
+    hold_r = eval_cfg.get("hold_r")
+    hold_r = None if hold_r is None else float(hold_r)
     Ks = _as_list(eval_cfg.get("K"))
     if not Ks:
         K_stage = stage_cfg["K"]
         Ks = [float(K_stage)] if isinstance(K_stage, (int, float)) else [0.5 * (float(K_stage[0]) + float(K_stage[1]))]
     first = stage_cfg["controlled"][0]
-    starts = _as_list(eval_cfg.get("starts_deg"))
-    base = []
-    for name in ANGLE_NAMES:
-        v = stage_cfg["init_angles_deg"][name]
-        base.append(float(v) if isinstance(v, (int, float)) else 0.5 * (float(v[0]) + float(v[1])))
-    if not starts:
-        starts = [base[ANGLE_NAMES.index(first)]]
-    combos = [(K, s) for K in Ks for s in starts]
+    base = _stage_base_angles(stage_cfg)
+    starts = _as_list(eval_cfg.get("starts_deg")) or [base[ANGLE_NAMES.index(first)]]
+    combos = [(K, s, rep) for K in Ks for s in starts for rep in range(repeats)]
     B = len(combos)
-    env = make_env(env_cfg, stage_cfg, B, int(cfg.get("seed", 0)), centred=False, max_steps=steps,
+    env = make_env(env_cfg, stage_cfg, B, seed, centred=False, max_steps=steps,
                    init_fields=eval_cfg.get("init_fields") or stage_cfg.get("init_fields", "sech"))
-    actor = load_agent(state, env.action_spec_unbatched)
+    policy = policy_for_env(env)
     init = torch.tensor([base] * B, dtype=torch.float64)
-    init[:, ANGLE_NAMES.index(first)] = torch.tensor([s for _, s in combos], dtype=torch.float64)
-    reset_td = TensorDict(init_angles=torch.deg2rad(init), init_K=torch.tensor([K for K, _ in combos], dtype=torch.float64),
+    init[:, ANGLE_NAMES.index(first)] = torch.tensor([s for _, s, _ in combos], dtype=torch.float64)
+    reset_td = TensorDict(init_angles=torch.deg2rad(init), init_K=torch.tensor([K for K, _, _ in combos], dtype=torch.float64),
                           batch_size=[B])
     td = env.reset(reset_td)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(steps, actor, auto_reset=False, tensordict=td)
+        rollout = env.rollout(steps, policy, auto_reset=False, tensordict=td)
     r = rollout["next", "r"].squeeze(-1)  # (B, steps)
     angles = torch.rad2deg(rollout["next", "angles"].double())  # (B, steps, 4)
     ctrl = [ANGLE_NAMES.index(n) for n in stage_cfg["controlled"]]
+    success = success_mask(r, threshold, hold_r)
     per_start = []
-    for i, (K, s) in enumerate(combos):
+    for i, (K, s, rep) in enumerate(combos):
         locked = (r[i] >= threshold).nonzero().flatten()
         per_start.append({
-            "K": K, "initial_angle_deg": s, "angle": first,
+            "K": K, "initial_angle_deg": s, "angle": first, "repeat": rep,
             "initial_angles_deg": init[i].tolist(),
-            "final_reward": float(r[i, -1]),
+            "final_reward": float(r[i, -1]), "success": bool(success[i]),
             "steps_to_lock": int(locked[0]) + 1 if locked.numel() else None,
             "reward_path": [float(x) for x in r[i]],
             "angle_path_deg": [[float(a) for a in angles[i, t, ctrl]] for t in range(steps)],
         })
+        if "model" in rollout.keys():
+            per_start[-1]["model_path"] = [int(m) for m in rollout["model"][i]]
     final = r[:, -1]
-    success = final >= threshold
-    locks = [p["steps_to_lock"] for p in per_start if p["final_reward"] >= threshold and p["steps_to_lock"] is not None]
+    locks = [p["steps_to_lock"] for p in per_start if p["success"] and p["steps_to_lock"] is not None]
     by_K = {}
     for K in Ks:
         rows = [p for p in per_start if p["K"] == K]
-        by_K[f"{K:g}"] = {"success_rate": sum(p["final_reward"] >= threshold for p in rows) / len(rows),
+        by_K[f"{K:g}"] = {"success_rate": sum(p["success"] for p in rows) / len(rows),
                           "mean_final_reward": sum(p["final_reward"] for p in rows) / len(rows)}
-    result = {
-        "checkpoint": state["path"], "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold,
-        "max_round_trips": env_cfg["max_round_trips"], "K": Ks,
+    return {
+        "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
+        "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"], "K": Ks,
         "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,
     }
+
+
+def write_eval(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "eval.json"
+    path.write_text(json.dumps(result, indent=1))
+    if plots:
+        from laserrl.plots import plot_eval
+
+        plot_eval(result, out_dir / "eval_rewards.png")
+    print(f"eval: {path}")
+    return path
+
+
+def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None) -> dict:
+    """Run the protocol for one checkpoint; returns and writes the eval.json content."""
+    state = load_checkpoint(checkpoint)
+    cfg = state["config"]
+    stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
+    result = evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched), cfg["env"], stage_cfg, eval_cfg,
+                             int(cfg.get("seed", 0)))
+    result = {"checkpoint": state["path"], **result}
+    write_eval(result, out_dir, eval_cfg.get("plots", True))
+    return result
+
+
+def _stage_K(state: Mapping[str, Any]) -> float:
+    K = state["config"]["stage"]["K"]
+    if not isinstance(K, (int, float)):
+        raise CheckpointError(f"checkpoint {state.get('path')} was trained over a K range {K}; a bank needs one K per model")
+    return float(K)
+
+
+def _summary(result: dict) -> dict:
+    return {k: result[k] for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock", "by_K")}
+
+
+def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None,
+                  single: str | None = None) -> dict:
+    """Generalisation across K of a bank of models (and optionally one model), the paper's fig. 6.
+
+    Rules: ``nearest`` acts at each K with the model trained at the nearest K (an oracle
+    that knows K); ``max_q`` acts with ``MaxQBank`` (no knowledge of K); ``single`` is the
+    one model ``single`` at every K. Writes eval.json with the success rate per K of each
+    rule and ``generalisation.png``.
+    """
+    from laserrl.agents.bank import make_bank_actor
+
+    states = [load_checkpoint(p) for p in bank]
+    model_K = [_stage_K(s) for s in states]
+    cfg = states[0]["config"]
+    stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
+    seed = int(cfg.get("seed", 0))
+    Ks = _as_list(eval_cfg.get("K"))
+    if not Ks:
+        raise ConfigError("a bank evaluation needs the K grid: eval.K=[-0.2,-0.15,...,0.4]")
+    rules: dict[str, dict] = {}
+    rules["max_q"] = _summary(evaluate_policy(
+        lambda env: make_bank_actor([load_qnet(s, env.action_spec_unbatched) for s in states], env.action_spec_unbatched),
+        cfg["env"], stage_cfg, eval_cfg, seed))
+    nearest_by_K: dict[str, dict] = {}
+    for m, state in enumerate(states):
+        mine = [K for K in Ks if min(range(len(model_K)), key=lambda j: abs(model_K[j] - K)) == m]
+        if mine:
+            res = evaluate_policy(lambda env, s=state: load_agent(s, env.action_spec_unbatched), cfg["env"], stage_cfg,
+                                  {**dict(eval_cfg), "K": mine}, seed)
+            nearest_by_K.update({k: {**v, "model": m} for k, v in res["by_K"].items()})
+    nearest_by_K = {f"{K:g}": nearest_by_K[f"{K:g}"] for K in Ks}
+    rules["nearest"] = {"success_rate": sum(v["success_rate"] for v in nearest_by_K.values()) / len(Ks),
+                        "mean_final_reward": sum(v["mean_final_reward"] for v in nearest_by_K.values()) / len(Ks),
+                        "by_K": nearest_by_K}
+    if single:
+        state = load_checkpoint(single)
+        rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
+                                                   cfg["env"], stage_cfg, eval_cfg, seed))
+    result = {"bank": [s["path"] for s in states], "bank_K": model_K, "single": single, "K": Ks,
+              "stage": stage_cfg.get("name"), "rules": rules,
+              # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
+              "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)
+                               for name, rule in rules.items()}}
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "eval.json"
     path.write_text(json.dumps(result, indent=1))
     if eval_cfg.get("plots", True):
-        from laserrl.plots import plot_eval
+        from laserrl.plots import plot_generalisation
 
-        plot_eval(result, out_dir / "eval_rewards.png")
+        plot_generalisation(result, out_dir / "generalisation.png")
     print(f"eval: {path}")
     return result
 
@@ -142,10 +266,14 @@ def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: s
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
 def _hydra_main(cfg: DictConfig) -> float:
     with user_errors("laserrl-eval"):
-        if cfg.checkpoint is None or cfg.checkpoint == "":
-            raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH")
         stage = OmegaConf.to_container(cfg.stage, resolve=True) if cfg.get("stage") else None
-        result = evaluate_checkpoint(cfg.checkpoint, OmegaConf.to_container(cfg.eval, resolve=True), cfg.run_dir, stage)
+        eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
+        if cfg.get("bank"):
+            result = evaluate_bank(list(cfg.bank), eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None)
+            return float(result["grid_success"]["max_q"])
+        if cfg.checkpoint is None or cfg.checkpoint == "":
+            raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH (or bank=[PATH,...])")
+        result = evaluate_checkpoint(cfg.checkpoint, eval_cfg, cfg.run_dir, stage)
     return float(result["success_rate"])
 
 

@@ -44,3 +44,26 @@ def plot_eval(result: dict, path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+RULE_LABELS = {"single": "one model", "nearest": "bank, nearest K (knows K)", "max_q": "bank, highest Q (K unknown)"}
+
+
+def plot_generalisation(result: dict, path: str | Path) -> Path:
+    """Success rate against K for each rule of a bank evaluation (paper fig. 6)."""
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    for name in ("single", "nearest", "max_q"):
+        rule = result["rules"].get(name)
+        if rule is None:
+            continue
+        Ks = [float(k) for k in rule["by_K"]]
+        ax.plot(Ks, [v["success_rate"] for v in rule["by_K"].values()], "o-", ms=4, label=RULE_LABELS[name])
+    for K in result.get("bank_K", []):
+        ax.axvline(K, color="0.8", lw=0.8, zorder=0)
+    ax.set(xlabel="birefringence K", ylabel="success rate", ylim=(-0.05, 1.05),
+           title="generalisation across K (grey: K of the bank's models)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

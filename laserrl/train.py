@@ -60,6 +60,16 @@ def make_collector(cfg: DictConfig, policy, seed: int):
     return cls([env_fn] * int(cfg.collector.num_workers), policy, **common)
 
 
+def periodic_eval(cfg: DictConfig, actor) -> float:
+    """Success rate of the greedy actor under the evaluation protocol (no plots, no files)."""
+    from laserrl.evaluate import evaluate_policy
+
+    eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), "plots": False}
+    result = evaluate_policy(lambda env: actor, OmegaConf.to_container(cfg.env, resolve=True),
+                             OmegaConf.to_container(cfg.stage, resolve=True), eval_cfg, int(cfg.seed))
+    return float(result["success_rate"])
+
+
 def train(cfg: DictConfig) -> dict:
     """Train, evaluate, checkpoint; returns the evaluation summary."""
     check_train_config(cfg)
@@ -89,6 +99,9 @@ def train(cfg: DictConfig) -> dict:
     # --- loop: collect a batch, learn from replay, log
     history: list[dict] = []
     frames = updates = 0
+    eval_every = cfg.train.get("eval_every_frames")
+    next_eval = eval_every or math.inf
+    frames_to_success = None
     max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
     bar = tqdm(total=cfg.train.total_frames, unit="frames", disable=not cfg.train.progress, dynamic_ncols=True)
     last_loss = last_episode_r = float("nan")
@@ -132,6 +145,18 @@ def train(cfg: DictConfig) -> dict:
         bar.update(data.numel())
         bar.set_postfix(ep_r=f"{last_episode_r:.3f}", r=f"{record['train/r_mean']:.3f}",
                         eps=f"{record['train/epsilon']:.2f}", refresh=False)
+        if frames >= next_eval:  # greedy evaluation during training (the stage's protocol)
+            next_eval += eval_every
+            success = periodic_eval(cfg, actor)
+            record["eval/success_rate"] = success
+            if logger is not None:
+                logger.log_scalar("eval/success_rate", success, step=frames)
+            tqdm.write(f"frames {frames}: eval success rate {success:.2f}")
+            target_rate = cfg.train.get("stop_at_success")
+            if target_rate is not None and success >= target_rate:
+                frames_to_success = frames
+                tqdm.write(f"success rate {success:.2f} >= train.stop_at_success={target_rate} after {frames} frames; stopping")
+                break
         if time.perf_counter() - started > max_seconds:
             tqdm.write(f"train.max_minutes={cfg.train.max_minutes} reached after {frames} frames; stopping")
             break
@@ -150,7 +175,8 @@ def train(cfg: DictConfig) -> dict:
         "config": OmegaConf.to_container(cfg, resolve=True),
     }, ckpt_path)
     (run_dir / "history.json").write_text(json.dumps(history))
-    summary = {"train_seconds": train_seconds, "frames": frames, "updates": updates, "checkpoint": str(ckpt_path)}
+    summary = {"train_seconds": train_seconds, "frames": frames, "updates": updates, "checkpoint": str(ckpt_path),
+               "frames_to_success": frames_to_success}
     if cfg.eval.after_training:
         from laserrl.evaluate import evaluate_checkpoint
 
@@ -172,50 +198,17 @@ def train(cfg: DictConfig) -> dict:
     return summary
 
 
-def run_curriculum(cfg: DictConfig) -> dict:
-    """Train ``curriculum.stages`` in order, each warm-started from the previous stage's
-    checkpoint (the Q-head grows by ``laserrl.warmstart.head_mapping``); every stage runs
-    in its own sub-directory ``NN-stage`` of the run directory."""
-    from laserrl.config import ConfigError
-
-    stages = list(cfg.curriculum.stages)
-    per_stage = {key: list(cfg.curriculum[key]) for key in ("total_frames", "max_minutes", "eval_steps", "eval_starts_deg")
-                 if cfg.curriculum.get(key) is not None}
-    for key, values in per_stage.items():
-        if len(values) != len(stages):
-            raise ConfigError(f"curriculum.{key} needs one entry per stage ({len(stages)}), got {len(values)}")
-    previous = cfg.init_from
-    summary: dict = {}
-    for i, name in enumerate(stages):
-        path = Path(CONF_DIR) / "stage" / f"{name}.yaml"
-        if not path.exists():
-            raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: "
-                              f"{sorted(p.stem for p in path.parent.glob('*.yaml'))}")
-        stage_cfg = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
-        sub = OmegaConf.to_container(cfg, resolve=True)
-        sub.pop("curriculum")
-        sub["stage"] = OmegaConf.to_container(stage_cfg, resolve=True)
-        sub["run_dir"] = str(Path(cfg.run_dir) / f"{i + 1:02d}-{name}")
-        sub["init_from"] = previous
-        for key, values in per_stage.items():
-            if key == "total_frames":
-                sub["train"]["total_frames"] = values[i]
-            elif key == "max_minutes":
-                sub["train"]["max_minutes"] = values[i]
-            elif key == "eval_steps":
-                sub["eval"]["steps"] = values[i]
-            else:
-                sub["eval"]["starts_deg"] = values[i]
-        print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
-        summary = train(OmegaConf.create(sub))
-        previous = summary["checkpoint"]
-    return summary
-
-
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
 def _hydra_main(cfg: DictConfig) -> float:
+    from laserrl.experiments import run_curriculum, run_transfer
+
     with user_errors("laserrl-train"):
-        summary = run_curriculum(cfg) if cfg.get("curriculum") else train(cfg)
+        if cfg.get("curriculum"):
+            summary = run_curriculum(cfg)
+        elif cfg.get("transfer"):
+            summary = run_transfer(cfg)
+        else:
+            summary = train(cfg)
     metric = summary.get(cfg.metric)
     return float(metric) if metric is not None else float("nan")
 

@@ -37,7 +37,18 @@ def test_default_is_the_papers_single_input_task():
 
 def test_eval_config_composes():
     cfg = _compose(["checkpoint=x.pt"], name="eval")
-    assert cfg.eval.steps == 20 and len(cfg.eval.starts_deg) == 16 and cfg.eval.success_r == 0.18
+    # null: the evaluated stage's protocol
+    assert cfg.eval.steps is None and cfg.eval.starts_deg is None and cfg.eval.success_r is None
+
+
+@pytest.mark.parametrize("stage, steps, n_starts, success_r, hold_r, repeats", [
+    ("siso", 20, 16, 0.18, None, 1),     # the paper's single-input protocol
+    ("duo", 40, 5, 0.15, 0.1, 1),
+    ("miso", 100, 1, 0.15, 0.1, 10),     # from 15, -5, 20, 84 deg, ten noise draws
+])
+def test_stage_protocols(stage, steps, n_starts, success_r, hold_r, repeats):
+    p = _compose([f"stage={stage}"]).stage.protocol
+    assert (p.steps, len(p.starts_deg), p.success_r, p.hold_r, p.repeats) == (steps, n_starts, success_r, hold_r, repeats)
 
 
 def test_unknown_key_is_rejected_by_hydra():

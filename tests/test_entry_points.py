@@ -121,8 +121,9 @@ def test_warm_start_same_stage_grown_stage_and_refusal(trained, tmp_path):
 def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
     # experiment=smoke keeps it tiny; the curriculum keys are those of experiment=curriculum
     res = run("laserrl-train", *SMOKE, "+curriculum.stages=[siso,duo]",
-              "+curriculum.total_frames=[32,32]", "+curriculum.max_minutes=[null,null]", "+curriculum.eval_steps=[2,2]",
-              "+curriculum.eval_starts_deg=[[-30],null]", "+curriculum.stage_overrides.duo.max_steps=3",
+              "+curriculum.total_frames=[32,32]", "+curriculum.max_minutes=[null,null]",
+              "+curriculum.stage_overrides.duo.max_steps=3", "eval.starts_deg=null", "eval.steps=null",
+              "+curriculum.stage_overrides.duo.protocol.steps=2", "+curriculum.stage_overrides.siso.protocol.steps=2",
               f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     first = torch.load(tmp_path / "01-siso" / "checkpoints" / "last.pt", weights_only=False)
@@ -130,3 +131,47 @@ def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
     assert (first["num_actions"], second["num_actions"]) == (3, 9)
     assert second["config"]["init_from"] == str(tmp_path / "01-siso" / "checkpoints" / "last.pt")
     assert res.stdout.index("stage 1/2: siso") < res.stdout.index("stage 2/2: duo")
+    # each stage is evaluated with its own protocol: siso from 16 alpha1 starts, duo from 5, with hold_r
+    ev1 = json.loads((tmp_path / "01-siso" / "eval.json").read_text())
+    ev2 = json.loads((tmp_path / "02-duo" / "eval.json").read_text())
+    assert (len(ev1["per_start"]), ev1["hold_r"], ev1["steps"]) == (16, None, 2)
+    assert (len(ev2["per_start"]), ev2["hold_r"], ev2["steps"]) == (5, 0.1, 2)
+
+
+def test_transfer_then_bank_generalisation(trained, tmp_path):
+    """experiment=transfer_k fine-tunes the base to another K (and trains from scratch),
+    counting frames to success; laserrl-eval then evaluates base + fine-tuned as a bank."""
+    base, _ = trained
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+              "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=64", "transfer.scratch.train.total_frames=64",
+              "train.eval_every_frames=32", "train.stop_at_success=0.0", "eval.steps=2", "eval.starts_deg=[-30]",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads((tmp_path / "transfer.json").read_text())
+    (row,) = out["rows"]
+    # a success-rate target of 0 is met at the first evaluation, after 32 frames
+    assert row["K"] == 0.0 and row["finetune"]["frames_to_success"] == 32 == row["scratch"]["frames_to_success"]
+    assert row["ratio"] == 1.0
+    tuned = tmp_path / "K+0.00-finetune" / "checkpoints" / "last.pt"
+    state = torch.load(tuned, weights_only=False)
+    assert state["config"]["stage"]["K"] == 0.0 and state["config"]["init_from"].endswith("last.pt")
+    assert "| 0 |" in (tmp_path / "transfer.md").read_text()
+
+    ev = tmp_path / "bank"
+    res = run("laserrl-eval", f"checkpoint={base}/checkpoints/last.pt", f"bank=[{base}/checkpoints/last.pt,{tuned}]",
+              "eval.K=[0.0,0.1,0.3]", "eval.steps=2", "eval.starts_deg=[-30]", "eval.compile=false",
+              f"hydra.run.dir={ev}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    result = json.loads((ev / "eval.json").read_text())
+    assert result["bank_K"] == [0.1, 0.0]
+    assert set(result["rules"]) == {"single", "nearest", "max_q"}
+    for rule in result["rules"].values():
+        assert list(rule["by_K"]) == ["0", "0.1", "0.3"]
+    # nearest K: the fine-tuned model (index 1) at K = 0, the base elsewhere
+    assert [v["model"] for v in result["rules"]["nearest"]["by_K"].values()] == [1, 0, 0]
+    assert (ev / "generalisation.png").stat().st_size > 0
+
+
+def test_transfer_needs_a_base(tmp_path):
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "transfer.base")

@@ -1,0 +1,120 @@
+"""Experiments made of several training runs: the curriculum and transfer across K.
+
+Both run the ordinary ``train`` once per sub-run, in sub-directories of the run
+directory, with the sub-run's config written out in full by ``train``'s checkpoint.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from laserrl.config import ConfigError
+from laserrl.train import CONF_DIR, train
+
+
+def run_curriculum(cfg: DictConfig) -> dict:
+    """Train ``curriculum.stages`` in order, each warm-started from the previous stage's
+    checkpoint (the Q-head grows by ``laserrl.warmstart.head_mapping``); every stage runs
+    in its own sub-directory ``NN-stage`` of the run directory."""
+    from laserrl.config import ConfigError
+
+    stages = list(cfg.curriculum.stages)
+    per_stage = {key: list(cfg.curriculum[key]) for key in ("total_frames", "max_minutes")
+                 if cfg.curriculum.get(key) is not None}
+    for key, values in per_stage.items():
+        if len(values) != len(stages):
+            raise ConfigError(f"curriculum.{key} needs one entry per stage ({len(stages)}), got {len(values)}")
+    previous = cfg.init_from
+    summary: dict = {}
+    for i, name in enumerate(stages):
+        path = Path(CONF_DIR) / "stage" / f"{name}.yaml"
+        if not path.exists():
+            raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: "
+                              f"{sorted(p.stem for p in path.parent.glob('*.yaml'))}")
+        stage_cfg = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
+        sub = OmegaConf.to_container(cfg, resolve=True)
+        sub.pop("curriculum")
+        sub["stage"] = OmegaConf.to_container(stage_cfg, resolve=True)
+        sub["run_dir"] = str(Path(cfg.run_dir) / f"{i + 1:02d}-{name}")
+        sub["init_from"] = previous
+        extra = cfg.curriculum.get("config_overrides", {}).get(name)
+        if extra:  # e.g. a lower starting exploration rate for warm-started stages
+            sub = OmegaConf.to_container(OmegaConf.merge(sub, extra), resolve=True)
+        for key, values in per_stage.items():  # each stage evaluates with its own protocol
+            sub["train"][key] = values[i]
+        print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
+        summary = train(OmegaConf.create(sub))
+        previous = summary["checkpoint"]
+    return summary
+
+
+
+
+def _sub_config(cfg: DictConfig, drop: str, run_dir: Path, **changes) -> DictConfig:
+    sub = OmegaConf.to_container(cfg, resolve=True)
+    sub.pop(drop)
+    sub["run_dir"] = str(run_dir)
+    merged = OmegaConf.merge(OmegaConf.create(sub), OmegaConf.create(changes))
+    return merged
+
+
+def run_transfer(cfg: DictConfig) -> dict:
+    """Fine-tune ``transfer.base`` to every K in ``transfer.Ks`` and train from scratch at
+    the same K, both stopping once the greedy success rate reaches
+    ``train.stop_at_success``; writes ``transfer.json`` and ``transfer.md`` (frames to
+    success of each, and their ratio). Returns the mean fine-tune / scratch frame ratio."""
+    t = cfg.transfer
+    if not t.base:
+        raise ConfigError("transfer.base: give the checkpoint to fine-tune, e.g. transfer.base=RUN/checkpoints/last.pt")
+    if not Path(t.base).exists():
+        raise ConfigError(f"transfer.base: no such checkpoint {t.base}")
+    if cfg.train.get("stop_at_success") is None or not cfg.train.get("eval_every_frames"):
+        raise ConfigError("transfer needs train.eval_every_frames and train.stop_at_success to count frames to success")
+    rows = []
+    for K in [float(k) for k in t.Ks]:
+        row = {"K": K}
+        runs = [("finetune", t.base, t.finetune)] + ([("scratch", None, t.scratch)] if t.scratch is not None else [])
+        for label, init, overrides in runs:
+            run_dir = Path(cfg.run_dir) / f"K{K:+.2f}-{label}"
+            sub = _sub_config(cfg, "transfer", run_dir, init_from=init, stage={"K": K}, eval={"K": K})
+            if overrides:
+                sub = OmegaConf.merge(sub, overrides)
+            print(f"transfer: K = {K:g}, {label}")
+            summary = train(sub)
+            row[label] = {"frames_to_success": summary["frames_to_success"], "frames": summary["frames"],
+                          "train_seconds": summary["train_seconds"],
+                          "success_rate": summary.get("eval/success_rate")}
+        if t.scratch is not None:
+            f, s = row["finetune"]["frames_to_success"], row["scratch"]["frames_to_success"]
+            # a run that never succeeded counts with all its frames (a lower bound on its need)
+            f_eff = f if f is not None else row["finetune"]["frames"]
+            s_eff = s if s is not None else row["scratch"]["frames"]
+            row["ratio"] = f_eff / s_eff if s_eff else math.nan
+            row["ratio_is_bound"] = f is None or s is None
+        rows.append(row)
+    out = {"base": str(t.base), "stop_at_success": cfg.train.stop_at_success, "rows": rows}
+    Path(cfg.run_dir).mkdir(parents=True, exist_ok=True)
+    (Path(cfg.run_dir) / "transfer.json").write_text(json.dumps(out, indent=1))
+    (Path(cfg.run_dir) / "transfer.md").write_text(transfer_table(out))
+    print(transfer_table(out))
+    ratios = [r["ratio"] for r in rows if "ratio" in r]
+    return {"transfer/mean_ratio": sum(ratios) / len(ratios) if ratios else math.nan, "rows": rows}
+
+
+def transfer_table(out: dict) -> str:
+    """Markdown table of a transfer.json."""
+    def fmt(run):
+        if run is None:
+            return "-"
+        f = run["frames_to_success"]
+        return f"{f:,}" if f is not None else f"not within {run['frames']:,}"
+    lines = ["| K | fine-tune: frames to success | scratch: frames to success | fine-tune / scratch |",
+             "|---:|---:|---:|---:|"]
+    for r in out["rows"]:
+        ratio = r.get("ratio")
+        ratio_s = "-" if ratio is None else (f"{ratio:.2f}" + (" (bound)" if r.get("ratio_is_bound") else ""))
+        lines.append(f"| {r['K']:g} | {fmt(r.get('finetune'))} | {fmt(r.get('scratch'))} | {ratio_s} |")
+    return "\n".join(lines) + "\n"
