@@ -64,8 +64,14 @@ def check_train_config(cfg: DictConfig) -> None:
     if cfg.collector.frames_per_batch % cfg.env.num_envs:
         raise ConfigError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of "
                           f"env.num_envs ({cfg.env.num_envs})")
-    if cfg.collector.kind not in ("sync", "multi_sync", "multi_async"):
-        raise ConfigError(f"collector.kind must be sync, multi_sync or multi_async, got {cfg.collector.kind!r}")
+    if cfg.collector.kind not in ("sync", "multi_sync", "multi_async", "ray"):
+        raise ConfigError(f"collector.kind must be sync, multi_sync, multi_async or ray, got {cfg.collector.kind!r}")
+    if cfg.collector.kind == "ray" and cfg.collector.sync:
+        share, left = divmod(cfg.collector.frames_per_batch, int(cfg.collector.num_workers))
+        if left or share % cfg.env.num_envs:
+            raise ConfigError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must split over "
+                              f"collector.num_workers ({cfg.collector.num_workers}) into multiples of env.num_envs "
+                              f"({cfg.env.num_envs})")
     if cfg.logger.backend not in ("wandb", "csv", "tensorboard", "none"):
         raise ConfigError(f"logger.backend must be wandb, csv, tensorboard or none, got {cfg.logger.backend!r}")
     if cfg.logger.backend == "wandb" and cfg.logger.mode not in ("offline", "online", "disabled"):

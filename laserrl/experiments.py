@@ -79,11 +79,16 @@ def run_transfer(cfg: DictConfig) -> dict:
         runs = [("finetune", t.base, t.finetune)] + ([("scratch", None, t.scratch)] if t.scratch is not None else [])
         for label, init, overrides in runs:
             run_dir = Path(cfg.run_dir) / f"K{K:+.2f}-{label}"
-            sub = _sub_config(cfg, "transfer", run_dir, init_from=init, stage={"K": K}, eval={"K": K})
-            if overrides:
-                sub = OmegaConf.merge(sub, overrides)
-            print(f"transfer: K = {K:g}, {label}")
-            summary = train(sub)
+            done = run_dir / "summary.json"
+            if done.exists():  # finished earlier (an interrupted or parallel transfer run): reuse it
+                print(f"transfer: K = {K:g}, {label}: reusing {done}")
+                summary = json.loads(done.read_text())
+            else:
+                sub = _sub_config(cfg, "transfer", run_dir, init_from=init, stage={"K": K}, eval={"K": K})
+                if overrides:
+                    sub = OmegaConf.merge(sub, overrides)
+                print(f"transfer: K = {K:g}, {label}")
+                summary = train(sub)
             row[label] = {"frames_to_success": summary["frames_to_success"], "frames": summary["frames"],
                           "train_seconds": summary["train_seconds"],
                           "success_rate": summary.get("eval/success_rate")}

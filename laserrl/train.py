@@ -44,7 +44,8 @@ def build_agent(cfg: DictConfig, env):
 
 
 def make_collector(cfg: DictConfig, policy, seed: int):
-    """TorchRL collector over the batched env; ``collector.kind``: sync (one process) or multi_sync / multi_async."""
+    """TorchRL collector over the batched env; ``collector.kind``: sync (one process),
+    multi_sync / multi_async (worker processes) or ray (Ray actors, on this machine or a cluster)."""
     from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 
     multi = cfg.collector.kind != "sync"
@@ -56,6 +57,17 @@ def make_collector(cfg: DictConfig, policy, seed: int):
                   init_random_frames=cfg.replay.init_random_frames, device=cfg.device)
     if not multi:
         return Collector(env_fn, policy, **common)
+    if cfg.collector.kind == "ray":
+        from torchrl.collectors.distributed import RayCollector
+
+        # one Collector per Ray actor, each stepping its own batch of env.num_envs cavities
+        return RayCollector([env_fn] * int(cfg.collector.num_workers), policy, sync=bool(cfg.collector.sync),
+                            collector_class=Collector,
+                            ray_init_config={"address": cfg.collector.ray_address,
+                                             "num_cpus": cfg.collector.ray_num_cpus, "ignore_reinit_error": True},
+                            remote_configs={"num_cpus": cfg.collector.cpus_per_worker,
+                                            "memory": int(cfg.collector.memory_gb_per_worker * 1024**3)},
+                            **common)
     cls = MultiSyncCollector if cfg.collector.kind == "multi_sync" else MultiAsyncCollector
     return cls([env_fn] * int(cfg.collector.num_workers), policy, **common)
 

@@ -175,3 +175,15 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
 def test_transfer_needs_a_base(tmp_path):
     res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     _one_line_error(res, "transfer.base")
+
+
+def test_ray_collector_on_a_local_ray_instance(tmp_path):
+    """collector=ray: TorchRL's RayCollector with two actors on a local Ray instance."""
+    pytest.importorskip("ray")
+    res = run("laserrl-train", *SMOKE, "collector=ray", "collector.num_workers=2", "collector.frames_per_batch=32",
+              "collector.ray_num_cpus=2", "collector.memory_gb_per_worker=1", "train.total_frames=96",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    state = torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=False)
+    assert state["frames"] == 96 and state["updates"] > 0
+    assert (tmp_path / "eval.json").exists()
