@@ -155,7 +155,14 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     tuned = tmp_path / "K+0.00-finetune" / "checkpoints" / "last.pt"
     state = torch.load(tuned, weights_only=False)
     assert state["config"]["stage"]["K"] == 0.0 and state["config"]["init_from"].endswith("last.pt")
-    assert "| 0 |" in (tmp_path / "transfer.md").read_text()
+    table = (tmp_path / "transfer.md").read_text()
+    assert "| 0 |" in table
+    # run again in the same directory: finished sub-runs are reused, not retrained
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+              "transfer.Ks=[0.0]", "train.eval_every_frames=32", "train.stop_at_success=0.0",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("reusing") == 2 and (tmp_path / "transfer.md").read_text() == table
 
     ev = tmp_path / "bank"
     res = run("laserrl-eval", f"checkpoint={base}/checkpoints/last.pt", f"bank=[{base}/checkpoints/last.pt,{tuned}]",
