@@ -12,15 +12,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 def plot_training(history: list[dict], path: str | Path) -> Path:
-    frames = [h["frames"] for h in history]
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
     ep = [(h["frames"], h["train/episode_final_r"]) for h in history if "train/episode_final_r" in h]
     if ep:
         axes[0].plot(*zip(*ep), ".-", ms=3)
     axes[0].set(xlabel="frames", ylabel="final r of finished episodes", title="(a) reward")
-    axes[1].plot(frames, [h["train/loss"] for h in history])
+    steps = [h for h in history if "train/loss" in h]  # (evaluation-only records have no loss)
+    axes[1].plot([h["frames"] for h in steps], [h["train/loss"] for h in steps])
     axes[1].set(xlabel="frames", ylabel="TD loss", title="(b) loss", yscale="log")
-    axes[2].plot(frames, [h["train/epsilon"] for h in history])
+    axes[2].plot([h["frames"] for h in steps], [h["train/epsilon"] for h in steps])
     axes[2].set(xlabel="frames", ylabel="epsilon", title="exploration")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -117,7 +117,15 @@ def train(cfg: DictConfig) -> dict:
     max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
     bar = tqdm(total=cfg.train.total_frames, unit="frames", disable=not cfg.train.progress, dynamic_ncols=True)
     last_loss = last_episode_r = float("nan")
-    for data in collector:
+    target_rate = cfg.train.get("stop_at_success")
+    if eval_every and target_rate is not None:
+        # a warm-started policy may already meet the target: then it needs no frames at all
+        success = periodic_eval(cfg, actor)
+        history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
+        tqdm.write(f"frames 0: eval success rate {success:.2f}")
+        if success >= target_rate:
+            frames_to_success = 0
+    for data in ([] if frames_to_success == 0 else collector):
         t_batch = time.perf_counter()
         frames += data.numel()
         replay.extend(data.reshape(-1))
@@ -164,7 +172,6 @@ def train(cfg: DictConfig) -> dict:
             if logger is not None:
                 logger.log_scalar("eval/success_rate", success, step=frames)
             tqdm.write(f"frames {frames}: eval success rate {success:.2f}")
-            target_rate = cfg.train.get("stop_at_success")
             if target_rate is not None and success >= target_rate:
                 frames_to_success = frames
                 tqdm.write(f"success rate {success:.2f} >= train.stop_at_success={target_rate} after {frames} frames; stopping")
