@@ -16,6 +16,7 @@ from functools import partial
 from pathlib import Path
 
 import hydra
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
@@ -86,7 +87,10 @@ def train(cfg: DictConfig) -> dict:
     """Train, evaluate, checkpoint; returns the evaluation summary."""
     check_train_config(cfg)
     run_dir = Path(cfg.run_dir)
+    # the same seed gives the same run on CPU: torch (networks, exploration, uniform replay)
+    # and numpy (TorchRL's prioritized sampler draws with np.random); the envs seed their own generators
     torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
     started = time.perf_counter()
