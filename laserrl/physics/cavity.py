@@ -36,7 +36,8 @@ import torch
 from laserrl.physics.jones import apply_jones, cavity_jones
 from laserrl.physics.params import CavityParams
 
-__all__ = ["propagate", "round_trip", "trapezoid_energy", "check_fields", "as_batch"]
+__all__ = ["propagate", "round_trip", "trapezoid_energy", "check_fields", "check_finite", "as_batch",
+           "NonFiniteFieldError", "MAX_PEAK_POWER"]
 
 
 def _dop853_tableau():
@@ -61,8 +62,35 @@ def trapezoid_energy(power: torch.Tensor, dt: float) -> torch.Tensor:
     return dt * (power.sum(-1) - 0.5 * (power[..., 0] + power[..., -1]))
 
 
+class NonFiniteFieldError(FloatingPointError):
+    """A cavity's field became NaN or infinite; ``cavities`` lists the batch indices."""
+
+    def __init__(self, cavities: list[int], where: str = ""):
+        self.cavities = cavities
+        super().__init__(f"field of cavity {cavities if len(cavities) > 1 else cavities[0]} is NaN or infinite{where}")
+
+
+def check_finite(u: torch.Tensor, v: torch.Tensor, where: str = "", index: torch.Tensor | None = None) -> None:
+    """Raise NonFiniteFieldError naming the cavities (batch indices, or ``index[i]``) with NaN/inf fields."""
+    bad = ~(torch.isfinite(torch.view_as_real(u)).all((-1, -2)) & torch.isfinite(torch.view_as_real(v)).all((-1, -2)))
+    if bool(bad.any()):
+        rows = bad.nonzero().flatten()
+        raise NonFiniteFieldError((rows if index is None else index[rows]).tolist(), where)
+
+
+#: Largest accepted peak power |u|^2 + |v|^2 of an input field. Physical states of this
+#: cavity peak at order 1-10 (E0 = 4.23); fields beyond this overflow the Kerr phase and
+#: the gain integral into NaN, so they are refused up front.
+MAX_PEAK_POWER = 1e6
+
+
 def check_fields(u, v, params: CavityParams) -> None:
-    """Raise a ValueError naming the field if u, v are not matching (B, n) complex tensors."""
+    """Raise an error naming the field or cavity unless u, v are matching (B, n) complex
+    tensors with finite values and a peak power of at most ``MAX_PEAK_POWER``.
+
+    NaN or infinite values raise ``NonFiniteFieldError`` (with the cavities' batch indices);
+    wrong types or shapes and huge fields raise ``ValueError``. Costs one host sync.
+    """
     for name, x in (("u", u), ("v", v)):
         if not torch.is_tensor(x) or not x.is_complex():
             raise ValueError(f"field {name} must be a complex tensor, got {getattr(x, 'dtype', type(x).__name__)}")
@@ -72,6 +100,13 @@ def check_fields(u, v, params: CavityParams) -> None:
         raise ValueError(
             f"fields u and v must match in shape, dtype and device, got {tuple(u.shape)}/{u.dtype} and {tuple(v.shape)}/{v.dtype}"
         )
+    check_finite(u, v, " (input)")
+    peak = (u.real.square() + u.imag.square() + v.real.square() + v.imag.square()).amax(-1)
+    huge = peak > MAX_PEAK_POWER
+    if bool(huge.any()):
+        rows = huge.nonzero().flatten().tolist()
+        raise ValueError(f"field of cavity {rows if len(rows) > 1 else rows[0]} has peak power "
+                         f"{float(peak[rows[0]]):.3g} > MAX_PEAK_POWER = {MAX_PEAK_POWER:g}")
 
 
 def as_batch(x, batch: int, name: str, like: torch.Tensor, width: int | None = None) -> torch.Tensor:
@@ -82,6 +117,11 @@ def as_batch(x, batch: int, name: str, like: torch.Tensor, width: int | None = N
     if x.is_complex():
         raise ValueError(f"{name} must be real, got {x.dtype}")
     x = x.to(_real_dtype(like.dtype))
+    bad = ~torch.isfinite(x) if x.ndim == 0 else ~torch.isfinite(x).reshape(x.shape[0], -1).all(-1)
+    if bool(bad.any()):
+        rows = bad.nonzero().flatten().tolist()
+        where = "" if x.ndim == 0 else f" of cavity {rows if len(rows) > 1 else rows[0]}"
+        raise ValueError(f"{name}{where} must be finite, got {x.tolist() if x.ndim == 0 else x[rows[0]].tolist()}")
     want = (batch,) if width is None else (batch, width)
     if tuple(x.shape) != want:
         if x.ndim == (0 if width is None else 1) and (width is None or x.shape[-1] == width):

@@ -7,7 +7,7 @@ import warnings
 
 import torch
 
-from laserrl.physics.cavity import as_batch, check_fields, round_trip
+from laserrl.physics.cavity import NonFiniteFieldError, as_batch, check_fields, check_finite, round_trip
 from laserrl.physics.observables import convergence
 from laserrl.physics.params import CavityParams
 
@@ -35,14 +35,6 @@ def effective_tolerance(tol: float, dtype: torch.dtype) -> float:
     return tol
 
 
-class NonFiniteFieldError(FloatingPointError):
-    """A cavity's field became NaN or infinite; ``cavities`` lists the batch indices."""
-
-    def __init__(self, cavities: list[int], where: str = ""):
-        self.cavities = cavities
-        super().__init__(f"field of cavity {cavities if len(cavities) > 1 else cavities[0]} became NaN or infinite{where}")
-
-
 @dataclass
 class ConvergenceResult:
     u: torch.Tensor
@@ -51,14 +43,6 @@ class ConvergenceResult:
     converged: torch.Tensor  # (B,) bool: change < tol reached within max_round_trips
     change: torch.Tensor  # (B,) last convergence measure
     tol: float  # tolerance used (see CONVERGENCE_FLOOR)
-
-
-def check_finite(u: torch.Tensor, v: torch.Tensor, where: str = "", index: torch.Tensor | None = None) -> None:
-    """Raise NonFiniteFieldError naming the cavities (batch indices, or ``index[i]``) with NaN/inf fields."""
-    bad = ~(torch.isfinite(torch.view_as_real(u)).all((-1, -2)) & torch.isfinite(torch.view_as_real(v)).all((-1, -2)))
-    if bool(bad.any()):
-        rows = bad.nonzero().flatten()
-        raise NonFiniteFieldError((rows if index is None else index[rows]).tolist(), where)
 
 
 def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e-6, max_round_trips: int = 500,
