@@ -62,17 +62,26 @@ def trapezoid_energy(power: torch.Tensor, dt: float) -> torch.Tensor:
     return dt * (power.sum(-1) - 0.5 * (power[..., 0] + power[..., -1]))
 
 
+def _cavities(rows: list[int]) -> str:
+    """'cavity 3' or 'cavity [0, 3]' for error messages."""
+    return f"cavity {rows if len(rows) > 1 else rows[0]}"
+
+
 class NonFiniteFieldError(FloatingPointError):
     """A cavity's field became NaN or infinite; ``cavities`` lists the batch indices."""
 
     def __init__(self, cavities: list[int], where: str = ""):
         self.cavities = cavities
-        super().__init__(f"field of cavity {cavities if len(cavities) > 1 else cavities[0]} is NaN or infinite{where}")
+        super().__init__(f"field of {_cavities(cavities)} is NaN or infinite{where}")
+
+
+def _finite_rows(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return torch.isfinite(torch.view_as_real(u)).all((-1, -2)) & torch.isfinite(torch.view_as_real(v)).all((-1, -2))
 
 
 def check_finite(u: torch.Tensor, v: torch.Tensor, where: str = "", index: torch.Tensor | None = None) -> None:
     """Raise NonFiniteFieldError naming the cavities (batch indices, or ``index[i]``) with NaN/inf fields."""
-    bad = ~(torch.isfinite(torch.view_as_real(u)).all((-1, -2)) & torch.isfinite(torch.view_as_real(v)).all((-1, -2)))
+    bad = ~_finite_rows(u, v)
     if bool(bad.any()):
         rows = bad.nonzero().flatten()
         raise NonFiniteFieldError((rows if index is None else index[rows]).tolist(), where)
@@ -100,12 +109,12 @@ def check_fields(u, v, params: CavityParams) -> None:
         raise ValueError(
             f"fields u and v must match in shape, dtype and device, got {tuple(u.shape)}/{u.dtype} and {tuple(v.shape)}/{v.dtype}"
         )
-    check_finite(u, v, " (input)")
+    finite = _finite_rows(u, v)
     peak = (u.real.square() + u.imag.square() + v.real.square() + v.imag.square()).amax(-1)
-    huge = peak > MAX_PEAK_POWER
-    if bool(huge.any()):
-        rows = huge.nonzero().flatten().tolist()
-        raise ValueError(f"field of cavity {rows if len(rows) > 1 else rows[0]} has peak power "
+    if bool((~finite | (peak > MAX_PEAK_POWER)).any()):  # one host sync for both checks
+        check_finite(u, v, " (input)")
+        rows = (peak > MAX_PEAK_POWER).nonzero().flatten().tolist()
+        raise ValueError(f"field of {_cavities(rows)} has peak power "
                          f"{float(peak[rows[0]]):.3g} > MAX_PEAK_POWER = {MAX_PEAK_POWER:g}")
 
 
@@ -117,17 +126,18 @@ def as_batch(x, batch: int, name: str, like: torch.Tensor, width: int | None = N
     if x.is_complex():
         raise ValueError(f"{name} must be real, got {x.dtype}")
     x = x.to(_real_dtype(like.dtype))
-    bad = ~torch.isfinite(x) if x.ndim == 0 else ~torch.isfinite(x).reshape(x.shape[0], -1).all(-1)
+    want = (batch,) if width is None else (batch, width)
+    shared = tuple(x.shape) != want  # one value for every cavity, broadcast below
+    if shared and not (x.ndim == (0 if width is None else 1) and (width is None or x.shape[-1] == width)):
+        raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+    if shared:
+        if not bool(torch.isfinite(x).all()):
+            raise ValueError(f"{name} must be finite, got {x.tolist()}")
+        return x.expand(want)
+    bad = ~(torch.isfinite(x) if width is None else torch.isfinite(x).all(-1))
     if bool(bad.any()):
         rows = bad.nonzero().flatten().tolist()
-        where = "" if x.ndim == 0 else f" of cavity {rows if len(rows) > 1 else rows[0]}"
-        raise ValueError(f"{name}{where} must be finite, got {x.tolist() if x.ndim == 0 else x[rows[0]].tolist()}")
-    want = (batch,) if width is None else (batch, width)
-    if tuple(x.shape) != want:
-        if x.ndim == (0 if width is None else 1) and (width is None or x.shape[-1] == width):
-            x = x.expand(want)
-        else:
-            raise ValueError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+        raise ValueError(f"{name} of {_cavities(rows)} must be finite, got {x[rows[0]].tolist()}")
     return x
 
 
@@ -510,7 +520,11 @@ def propagate(u: torch.Tensor, v: torch.Tensor, K, params: CavityParams, *, comp
         (u, v) at z = Z.
     """
     check_fields(u, v, params)
-    K = as_batch(K, u.shape[0], "K", u)
+    return _propagate(u, v, as_batch(K, u.shape[0], "K", u), params, compile, refine, max_refinements)
+
+
+def _propagate(u, v, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool, max_refinements: int = 3):
+    """``propagate`` of fields and (B,) K that are already checked."""
     u_out, v_out, error = _propagate_fixed(u, v, K, params, compile)
     if not refine:
         return u_out, v_out
@@ -541,5 +555,10 @@ def round_trip(u: torch.Tensor, v: torch.Tensor, angles: torch.Tensor, K, params
     """
     check_fields(u, v, params)
     angles = as_batch(angles, u.shape[0], "angles", u, width=4)
-    u, v = propagate(u, v, K, params, compile=compile, refine=refine)
+    return _round_trip(u, v, angles, as_batch(K, u.shape[0], "K", u), params, compile, refine)
+
+
+def _round_trip(u, v, angles: torch.Tensor, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool):
+    """``round_trip`` of fields, (B, 4) angles and (B,) K that are already checked."""
+    u, v = _propagate(u, v, K, params, compile, refine)
     return apply_jones(cavity_jones(angles, u.dtype), u, v)

@@ -7,7 +7,7 @@ import warnings
 
 import torch
 
-from laserrl.physics.cavity import NonFiniteFieldError, as_batch, check_fields, check_finite, round_trip
+from laserrl.physics.cavity import NonFiniteFieldError, _round_trip, as_batch, check_fields, check_finite
 from laserrl.physics.observables import convergence
 from laserrl.physics.params import CavityParams
 
@@ -84,7 +84,8 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
         if idx.numel() == 0:
             break
         u_old, v_old = u[idx], v[idx]
-        u_new, v_new = round_trip(u_old, v_old, angles[idx], K[idx], params, compile=compile)
+        # inputs were checked above and every output is checked here, so the loop skips round_trip's own checks
+        u_new, v_new = _round_trip(u_old, v_old, angles[idx], K[idx], params, compile, True)
         check_finite(u_new, v_new, " during a round trip", index=idx)
         delta = convergence(u_new, v_new, u_old, v_old)
         u[idx], v[idx] = u_new, v_new
