@@ -172,15 +172,20 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     }
 
 
-def write_eval(result: dict, out_dir: str | Path, plots: bool = True) -> Path:
+def write_eval(result: dict, out_dir: str | Path, plots: bool = True, kind: str = "rewards") -> Path:
+    """Write eval.json and its figure: per-start rewards (``eval_rewards.png``), or success
+    against K for a bank (``kind="generalisation"``, ``generalisation.png``)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "eval.json"
     path.write_text(json.dumps(result, indent=1))
     if plots:
-        from laserrl.plots import plot_eval
+        from laserrl.plots import plot_eval, plot_generalisation
 
-        plot_eval(result, out_dir / "eval_rewards.png")
+        if kind == "generalisation":
+            plot_generalisation(result, out_dir / "generalisation.png")
+        else:
+            plot_eval(result, out_dir / "eval_rewards.png")
     print(f"eval: {path}")
     return path
 
@@ -251,15 +256,7 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
               # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
               "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)
                                for name, rule in rules.items()}}
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / "eval.json"
-    path.write_text(json.dumps(result, indent=1))
-    if eval_cfg.get("plots", True):
-        from laserrl.plots import plot_generalisation
-
-        plot_generalisation(result, out_dir / "generalisation.png")
-    print(f"eval: {path}")
+    write_eval(result, out_dir, eval_cfg.get("plots", True), kind="generalisation")
     return result
 
 

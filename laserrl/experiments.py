@@ -19,8 +19,6 @@ def run_curriculum(cfg: DictConfig) -> dict:
     """Train ``curriculum.stages`` in order, each warm-started from the previous stage's
     checkpoint (the Q-head grows by ``laserrl.warmstart.head_mapping``); every stage runs
     in its own sub-directory ``NN-stage`` of the run directory."""
-    from laserrl.config import ConfigError
-
     stages = list(cfg.curriculum.stages)
     per_stage = {key: list(cfg.curriculum[key]) for key in ("total_frames", "max_minutes")
                  if cfg.curriculum.get(key) is not None}
@@ -34,31 +32,26 @@ def run_curriculum(cfg: DictConfig) -> dict:
         if not path.exists():
             raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: "
                               f"{sorted(p.stem for p in path.parent.glob('*.yaml'))}")
-        stage_cfg = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
-        sub = OmegaConf.to_container(cfg, resolve=True)
-        sub.pop("curriculum")
-        sub["stage"] = OmegaConf.to_container(stage_cfg, resolve=True)
-        sub["run_dir"] = str(Path(cfg.run_dir) / f"{i + 1:02d}-{name}")
-        sub["init_from"] = previous
+        sub = _sub_config(cfg, "curriculum", Path(cfg.run_dir) / f"{i + 1:02d}-{name}", init_from=previous)
+        # the stage file replaces the stage (no keys of the previous stage may linger)
+        sub.stage = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
         extra = cfg.curriculum.get("config_overrides", {}).get(name)
         if extra:  # e.g. a lower starting exploration rate for warm-started stages
-            sub = OmegaConf.to_container(OmegaConf.merge(sub, extra), resolve=True)
-        for key, values in per_stage.items():  # each stage evaluates with its own protocol
-            sub["train"][key] = values[i]
+            sub = OmegaConf.merge(sub, extra)
+        # per-stage budgets last; each stage evaluates with its own protocol
+        sub = OmegaConf.merge(sub, {"train": {key: values[i] for key, values in per_stage.items()}})
         print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
-        summary = train(OmegaConf.create(sub))
+        summary = train(sub)
         previous = summary["checkpoint"]
     return summary
 
 
-
-
 def _sub_config(cfg: DictConfig, drop: str, run_dir: Path, **changes) -> DictConfig:
+    """The run config without the experiment block ``drop``, in ``run_dir``, with ``changes`` merged in."""
     sub = OmegaConf.to_container(cfg, resolve=True)
     sub.pop(drop)
     sub["run_dir"] = str(run_dir)
-    merged = OmegaConf.merge(OmegaConf.create(sub), OmegaConf.create(changes))
-    return merged
+    return OmegaConf.merge(OmegaConf.create(sub), OmegaConf.create(changes))
 
 
 def run_transfer(cfg: DictConfig) -> dict:

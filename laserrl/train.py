@@ -122,11 +122,18 @@ def train(cfg: DictConfig) -> dict:
     bar = tqdm(total=cfg.train.total_frames, unit="frames", disable=not cfg.train.progress, dynamic_ncols=True)
     last_loss = last_episode_r = float("nan")
     target_rate = cfg.train.get("stop_at_success")
+
+    def greedy_success(at_frames: int) -> float:
+        success = periodic_eval(cfg, actor)
+        if logger is not None:
+            logger.log_scalar("eval/success_rate", success, step=at_frames)
+        tqdm.write(f"frames {at_frames}: eval success rate {success:.2f}")
+        return success
+
     if eval_every and target_rate is not None:
         # a warm-started policy may already meet the target: then it needs no frames at all
-        success = periodic_eval(cfg, actor)
+        success = greedy_success(0)
         history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
-        tqdm.write(f"frames 0: eval success rate {success:.2f}")
         if success >= target_rate:
             frames_to_success = 0
     for data in ([] if frames_to_success == 0 else collector):
@@ -171,11 +178,7 @@ def train(cfg: DictConfig) -> dict:
                         eps=f"{record['train/epsilon']:.2f}", refresh=False)
         if frames >= next_eval:  # greedy evaluation during training (the stage's protocol)
             next_eval += eval_every
-            success = periodic_eval(cfg, actor)
-            record["eval/success_rate"] = success
-            if logger is not None:
-                logger.log_scalar("eval/success_rate", success, step=frames)
-            tqdm.write(f"frames {frames}: eval success rate {success:.2f}")
+            success = record["eval/success_rate"] = greedy_success(frames)
             if target_rate is not None and success >= target_rate:
                 frames_to_success = frames
                 tqdm.write(f"success rate {success:.2f} >= train.stop_at_success={target_rate} after {frames} frames; stopping")

@@ -347,7 +347,7 @@ class _SplitStep:
         Precomputed on the host: inside the graph Inductor would recompute these
         transcendentals for every cavity."""
         if s not in self._tables:
-            disp = self.disp.double()
+            disp = self.disp  # float64
             rotation = torch.exp(1j * s * disp) / self.p.n
             j = torch.arange(self.p.n, dtype=torch.float64)
             first, last = rotation, rotation * torch.exp(-2j * torch.pi * j / self.p.n)
