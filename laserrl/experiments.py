@@ -66,9 +66,12 @@ def run_transfer(cfg: DictConfig) -> dict:
         raise ConfigError(f"transfer.base: no such checkpoint {t.base}")
     if cfg.train.get("stop_at_success") is None or not cfg.train.get("eval_every_frames"):
         raise ConfigError("transfer needs train.eval_every_frames and train.stop_at_success to count frames to success")
+    by_K = _settings_by_K(t.get("by_K"))
     rows = []
     for K in [float(k) for k in t.Ks]:
         row = {"K": K}
+        # per-K settings (e.g. longer episodes where the locks lie far from the starts) apply to both runs
+        at_K = next((s for k, s in by_K.items() if math.isclose(k, K, abs_tol=1e-9)), None)
         runs = [("finetune", t.base, t.finetune)] + ([("scratch", None, t.scratch)] if t.scratch is not None else [])
         for label, init, overrides in runs:
             run_dir = Path(cfg.run_dir) / f"K{K:+.2f}-{label}"
@@ -78,8 +81,9 @@ def run_transfer(cfg: DictConfig) -> dict:
                 summary = json.loads(done.read_text())
             else:
                 sub = _sub_config(cfg, "transfer", run_dir, init_from=init, stage={"K": K}, eval={"K": K})
-                if overrides:
-                    sub = OmegaConf.merge(sub, overrides)
+                for extra in (overrides, at_K):  # per-K settings win
+                    if extra:
+                        sub = OmegaConf.merge(sub, extra)
                 print(f"transfer: K = {K:g}, {label}")
                 summary = train(sub)
             row[label] = {"frames_to_success": summary["frames_to_success"], "frames": summary["frames"],
@@ -100,6 +104,20 @@ def run_transfer(cfg: DictConfig) -> dict:
     print(transfer_table(out))
     ratios = [r["ratio"] for r in rows if "ratio" in r]
     return {"transfer/mean_ratio": sum(ratios) / len(ratios) if ratios else math.nan, "rows": rows}
+
+
+def _settings_by_K(by_K) -> dict[float, dict]:
+    """``transfer.by_K``: {K: config overrides}; keys are numbers or numeric strings."""
+    out = {}
+    for key, settings in (by_K or {}).items():
+        try:
+            K = float(key)
+        except (TypeError, ValueError):
+            raise ConfigError(f"transfer.by_K: key {key!r} is not a birefringence value K") from None
+        if not math.isfinite(K):
+            raise ConfigError(f"transfer.by_K: key {key!r} is not a finite K")
+        out[K] = settings
+    return out
 
 
 def transfer_table(out: dict) -> str:

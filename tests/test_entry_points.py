@@ -145,8 +145,13 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
               "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=64", "transfer.scratch.train.total_frames=64",
               "train.eval_every_frames=32", "train.stop_at_success=0.0", "eval.steps=2", "eval.starts_deg=[-30]",
+              "+transfer.by_K={0:{stage:{max_steps:3}},0.3:{stage:{max_steps:5}}}",
               f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
+    # per-K settings reach both runs at that K, and only that K's
+    for label in ("finetune", "scratch"):
+        sub = torch.load(tmp_path / f"K+0.00-{label}" / "checkpoints" / "last.pt", weights_only=False)["config"]
+        assert sub["stage"]["max_steps"] == 3
     out = json.loads((tmp_path / "transfer.json").read_text())
     (row,) = out["rows"]
     # a success-rate target of 0 is met by the evaluation before training: no frames needed
@@ -177,6 +182,14 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     # nearest K: the fine-tuned model (index 1) at K = 0, the base elsewhere
     assert [v["model"] for v in result["rules"]["nearest"]["by_K"].values()] == [1, 0, 0]
     assert (ev / "generalisation.png").stat().st_size > 0
+
+
+def test_transfer_rejects_a_non_numeric_K_setting(trained, tmp_path):
+    base, _ = trained
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+              "+transfer.by_K={warm:{stage:{max_steps:3}}}", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "transfer.by_K")
+    assert not (tmp_path / "transfer.json").exists()
 
 
 def test_transfer_needs_a_base(tmp_path):
