@@ -68,6 +68,10 @@ def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavitie
         if name == "hybrid":
             rule = _params(HybridRule, {k: v for k, v in ccfg.items() if k != "esc"}, where)
             esc = _params(ESCParams, ccfg["esc"], f"{where}.esc")
+            try:
+                esc.resolve(controlled)
+            except ValueError as err:
+                raise ConfigError(f"{where}.esc: {err}") from None
             return Hybrid(DeepRL(rl_policy, controlled, rl_steps_deg), esc, rule, controlled, num_cavities)
     except ValueError as err:
         if isinstance(err, ConfigError):
@@ -76,7 +80,8 @@ def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavitie
     raise ConfigError(f"unknown controller {name!r}; choose from {list(ALL) + ['all']}")
 
 
-def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.ndarray, init_angles_deg: np.ndarray) -> dict:
+def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.ndarray, init_angles_deg: np.ndarray,
+                    progress: bool = False) -> dict:
     """Run every controller on its own B cavities of one plant (B x len(controllers) cavities,
     stepped together: one batched physics call per round trip for all of them).
 
@@ -109,6 +114,9 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
         r[:, t] = plant.r.cpu().numpy()
         angles[:, t] = plant.angles_deg.cpu().numpy()
         round_trips[:, t] = obs["round_trips"].reshape(-1).cpu().numpy()
+        if progress and ((t + 1) % max(1, T // 10) == 0 or t + 1 == T):
+            means = ", ".join(f"{name} {r[part[name], : t + 1].mean():.3f}" for name in controllers)
+            print(f"step {t + 1}/{T}: mean r {means}", flush=True)
     return {name: {"r": r[part[name]], "angles": angles[part[name]], "round_trips": round_trips[part[name]],
                    "mode": mode.get(name)} for name in controllers}
 
@@ -181,7 +189,7 @@ def run_control(cfg: DictConfig) -> dict:
     controllers = {n: build_controller(n, configs[n], controlled, B, seed, policy, steps_deg, where[n]) for n in names}
 
     t0 = time.perf_counter()
-    traces_np = run_controllers(controllers, plant, K, init_angles)
+    traces_np = run_controllers(controllers, plant, K, init_angles, progress=bool(cfg.progress))
     seconds = time.perf_counter() - t0
     results, traces = {}, {}
     idx = [ANGLE_NAMES.index(a) for a in controlled]
@@ -244,14 +252,19 @@ def comparison_table(out: dict) -> str:
     return "\n".join(lines)
 
 
+def sweep_metric(out: dict, cfg: DictConfig) -> float:
+    """What ``main`` returns (for sweepers): the mean over cavities of ``cfg.metric`` for the
+    controller run, or with ``controller=all`` for ``cfg.metric_controller``; NaN if undefined."""
+    names = out["controllers"]
+    name = cfg.metric_controller if len(names) > 1 else names[0]
+    value = out["results"][name]["summary"][cfg.metric]["mean"]
+    return float(value) if value is not None else float("nan")
+
+
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="control")
 def _hydra_main(cfg: DictConfig) -> float:
     with user_errors("laserrl-control"):
-        out = run_control(cfg)
-        names = out["controllers"]
-        name = cfg.metric_controller if len(names) > 1 else names[0]
-        value = out["results"][name]["summary"][cfg.metric]["mean"]
-    return float(value) if value is not None else float("nan")
+        return sweep_metric(run_control(cfg), cfg)
 
 
 def main() -> None:
