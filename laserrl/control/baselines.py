@@ -23,7 +23,7 @@ than the incumbent's latest r.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -44,6 +44,12 @@ def _integer(obj, name, low):
     v = getattr(obj, name)
     if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v or v < low:
         raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
+
+
+def _probability(obj, name):
+    v = getattr(obj, name)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
+        raise ValueError(f"{name} must lie in [0, 1], got {v!r}")
 
 
 def _range(value: Sequence[float]) -> tuple[float, float]:
@@ -105,8 +111,7 @@ class RandomSearchParams:
 
     def __post_init__(self):
         _positive(self, "sigma_deg")
-        if isinstance(self.global_prob, bool) or not 0 <= self.global_prob <= 1:
-            raise ValueError(f"global_prob must lie in [0, 1], got {self.global_prob!r}")
+        _probability(self, "global_prob")
         self.range_deg = _range(self.range_deg)
         _integer(self, "candidates_per_remeasure", 1)
 
@@ -197,8 +202,7 @@ class GeneticParams:
         if self.tournament > self.population:
             raise ValueError(f"tournament ({self.tournament}) must be <= population ({self.population})")
         _positive(self, "sigma_deg")
-        if isinstance(self.mutation_prob, bool) or not 0 <= self.mutation_prob <= 1:
-            raise ValueError(f"mutation_prob must lie in [0, 1], got {self.mutation_prob!r}")
+        _probability(self, "mutation_prob")
         self.range_deg = _range(self.range_deg)
 
 

@@ -28,6 +28,10 @@ from laserrl.control.filters import StepFilter
 from laserrl.envs.laser_env import ANGLE_NAMES
 
 
+def _finite(x) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+
+
 def observed_r(obs) -> np.ndarray:
     """r (B,) float64 numpy from a plant observation."""
     return obs["r"].reshape(-1).detach().cpu().numpy().astype(np.float64)
@@ -46,7 +50,7 @@ def per_angle(value, controlled, name: str) -> np.ndarray:
     else:
         out = [value] * len(controlled)
     for x in out:
-        if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        if not _finite(x):
             raise ValueError(f"{name} must be finite numbers, got {value!r}")
     return np.asarray(out, dtype=np.float64)
 
@@ -89,9 +93,9 @@ class ESCParams:
                 raise ValueError(f"{name} must lie in (0, 0.5) cycles per step, got {c!r}")
         if isinstance(self.filter_order, bool) or int(self.filter_order) != self.filter_order or not 1 <= self.filter_order <= 8:
             raise ValueError(f"filter_order must be an integer in [1, 8], got {self.filter_order!r}")
-        if not (math.isfinite(self.max_step_deg) and self.max_step_deg > 0):
+        if not (_finite(self.max_step_deg) and self.max_step_deg > 0):
             raise ValueError(f"max_step_deg must be > 0, got {self.max_step_deg!r}")
-        if not math.isfinite(self.phase_deg):
+        if not _finite(self.phase_deg):
             raise ValueError(f"phase_deg must be finite, got {self.phase_deg!r}")
         return {"amplitude": a, "frequency": f, "gain": g}
 
@@ -119,21 +123,24 @@ class ExtremumSeeking:
         self.grad = np.zeros((B, m))  # last gradient estimate dr/dtheta (1/deg), for diagnostics
 
     def reset(self, obs, angles_deg: torch.Tensor, mask: torch.Tensor | None = None) -> None:
-        r = observed_r(obs)
         theta = angles_deg[:, self.idx].detach().cpu().numpy().astype(np.float64)
-        m = np.ones(len(r), dtype=bool) if mask is None else mask.detach().cpu().numpy().astype(bool)
+        m = np.ones(len(theta), dtype=bool) if mask is None else mask.detach().cpu().numpy().astype(bool)
         self.theta = np.where(m[:, None], theta, self.theta)
         self.k = np.where(m, 0, self.k)
         self.grad = np.where(m[:, None], 0.0, self.grad)
-        self.hpf.reset(r, m)
-        if self.lpf is not None:
-            self.lpf.reset(np.zeros_like(self.theta), m)
 
     def _dither(self, k: np.ndarray, lag_deg: float = 0.0) -> np.ndarray:
         return np.sin(2 * np.pi * self.f[None, :] * k[:, None] - np.deg2rad(lag_deg))
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         r = observed_r(obs)
+        fresh = self.k == 0
+        if fresh.any():
+            # filters start in the steady state of the first r measured under ESC (not, e.g., the
+            # r of the initial fields), so that a start-up step in r is no false gradient
+            self.hpf.reset(r, fresh)
+            if self.lpf is not None:
+                self.lpf.reset(np.zeros_like(self.theta), fresh)
         rho = self.hpf(r)
         started = self.k > 0  # r answers the command of step k - 1; none yet right after a (re)start
         xi = rho[:, None] * self._dither(self.k - 1, self.params.phase_deg)

@@ -13,7 +13,6 @@ With r(t) the reward after agent step t (t = 0 .. T-1) and "locked" meaning r >=
 """
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import numpy as np
@@ -71,7 +70,3 @@ def summarise(cav: dict, num_jumps: int) -> dict:
     out["recovered"] = (sum(v is not None for v in pooled) / len(pooled)) if pooled else None
     out["recovery_by_jump"] = [spread([rec[j] for rec in cav["recovery_steps"]]) for j in range(num_jumps)]
     return out
-
-
-def standard_error(s: dict) -> float | None:
-    return None if not s["n"] else s["std"] / math.sqrt(s["n"])

@@ -1,6 +1,5 @@
 """The hybrid hands over to ESC and back by its documented rule (scripted policy, scripted r),
 and deep RL as a controller moves the angles exactly as the env's actions do."""
-import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
