@@ -109,7 +109,7 @@ def plot_control(out: dict, path: str | Path, cavity: int = 0) -> Path:
     axes[0, 1].set(ylabel="mean r", title=f"{len(K)} cavities, scenario {out['scenario']['name']}")
     axes[1, 1].set(ylabel="K (every cavity)")
     axes[2, 1].set(xlabel="step", ylabel=f"fraction with r >= {out['locked_r']:g}", ylim=(-0.05, 1.05))
-    axes[0, 0].legend(fontsize=7, ncol=2)
+    axes[0, 1].legend(fontsize=7, ncol=3, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
