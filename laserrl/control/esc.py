@@ -134,10 +134,11 @@ class ExtremumSeeking:
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         r = observed_r(obs)
-        fresh = self.k == 0
+        # k = 1: r answers ESC's first command (the estimate itself, dither sin 0 = 0). The filters
+        # start in the steady state of that r, so that a step from the r before ESC (e.g. that
+        # of the initial fields) is no false gradient
+        fresh = self.k <= 1
         if fresh.any():
-            # filters start in the steady state of the first r measured under ESC (not, e.g., the
-            # r of the initial fields), so that a start-up step in r is no false gradient
             self.hpf.reset(r, fresh)
             if self.lpf is not None:
                 self.lpf.reset(np.zeros_like(self.theta), fresh)
