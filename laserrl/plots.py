@@ -67,3 +67,50 @@ def plot_generalisation(result: dict, path: str | Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return Path(path)
+
+
+def plot_control(out: dict, path: str | Path, cavity: int = 0) -> Path:
+    """r, K and the controlled angles over time (paper fig. 7) from a control.json.
+
+    Left: one cavity under every controller (the hybrid's ESC phases shaded). Right: r
+    averaged over the cavities, K of every cavity, and the fraction of cavities locked.
+    """
+    names, controlled = out["controllers"], out["controlled"]
+    K = out["K"]
+    T = len(K[0])
+    steps = range(1, T + 1)
+    fig, axes = plt.subplots(3, 2, figsize=(13, 8), sharex=True)
+    colors = {n: plt.get_cmap("tab10")(i) for i, n in enumerate(names)}
+    for n in names:
+        tr = out["traces"][n]
+        axes[0, 0].plot(steps, tr["r"][cavity], color=colors[n], lw=1, label=n)
+        for j, a in enumerate(controlled):
+            axes[2, 0].plot(steps, [x[j] for x in tr["angles_deg"][cavity]], color=colors[n], lw=1,
+                            ls=("-", "--", ":", "-.")[j % 4], label=f"{n} {a}" if len(controlled) > 1 else n)
+        mean_r = [sum(row[t] for row in tr["r"]) / len(tr["r"]) for t in range(T)]
+        locked = [sum(row[t] >= out["locked_r"] for row in tr["r"]) / len(tr["r"]) for t in range(T)]
+        axes[0, 1].plot(steps, mean_r, color=colors[n], lw=1, label=n)
+        axes[2, 1].plot(steps, locked, color=colors[n], lw=1, label=n)
+        if "mode" in tr:
+            esc = tr["mode"][cavity]
+            for t, m in enumerate(esc):
+                if m:
+                    axes[0, 0].axvspan(t + 0.5, t + 1.5, color=colors[n], alpha=0.08, lw=0)
+    axes[1, 0].plot(steps, K[cavity], color="k", lw=1)
+    for row in K:
+        axes[1, 1].plot(steps, row, lw=0.6, alpha=0.6)
+    for ax in axes.flat:
+        for t in out["scenario"]["jump_times"]:
+            ax.axvline(t + 1, color="0.7", lw=0.8, ls=":", zorder=0)
+    axes[0, 0].axhline(out["locked_r"], color="k", ls="--", lw=0.8)
+    axes[0, 0].set(ylabel="r", title=f"cavity {cavity} (shaded: hybrid under ESC)")
+    axes[1, 0].set(ylabel="K")
+    axes[2, 0].set(xlabel="step", ylabel="angle (deg)")
+    axes[0, 1].set(ylabel="mean r", title=f"{len(K)} cavities, scenario {out['scenario']['name']}")
+    axes[1, 1].set(ylabel="K (every cavity)")
+    axes[2, 1].set(xlabel="step", ylabel=f"fraction with r >= {out['locked_r']:g}", ylim=(-0.05, 1.05))
+    axes[0, 1].legend(fontsize=7, ncol=3, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)

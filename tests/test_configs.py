@@ -9,7 +9,10 @@ from laserrl.config import check_train_config
 from laserrl.envs.factory import make_params, make_task
 
 CONF = Path(__file__).resolve().parent.parent / "conf"
-GROUPS = {g.name: sorted(p.stem for p in g.glob("*.yaml")) for g in CONF.iterdir() if g.is_dir()}
+# groups of laserrl-control (conf/control.yaml) compose there: tests/control/test_app.py
+CONTROL_GROUPS = ("controller", "scenario")
+GROUPS = {g.name: sorted(p.stem for p in g.glob("*.yaml")) for g in CONF.iterdir()
+          if g.is_dir() and g.name not in CONTROL_GROUPS}
 
 
 def _compose(overrides, name="config"):

@@ -284,6 +284,14 @@ class LaserCavityEnv(EnvBase):
             raise ValueError(f"K must be finite with shape {tuple(self.batch_size)}, got {tuple(K.shape)}")
         self._K = K.clone()
 
+    def set_angles(self, angles) -> None:
+        """Set all four angles of every cavity, (B, 4) radians (wrapped to [-pi/2, pi/2)):
+        continuous commands of other controllers (``laserrl.control``) between steps."""
+        angles = torch.as_tensor(angles, dtype=torch.float64, device=self.device)
+        if angles.shape != (*self.batch_size, 4) or not bool(torch.isfinite(angles).all()):
+            raise ValueError(f"angles must be finite with shape {(*self.batch_size, 4)}, got {tuple(angles.shape)}")
+        self._angles = wrap_angle(angles.clone())
+
     def fields(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Current complex fields (u, v), (B, n)."""
         return self._u.clone(), self._v.clone()

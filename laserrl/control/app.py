@@ -1,0 +1,275 @@
+"""``laserrl-control controller=... scenario=...``: hold cavities mode-locked while K drifts and jumps.
+
+Runs one controller (or ``controller=all``: every controller on the same cavities, the
+comparison table) for ``scenario.steps`` agent steps on ``num_cavities`` cavities, each
+with its own K trajectory and start angles from the scenario and ``seed``. Every
+controller gets the same budget: one setting of the angles per agent step, each step the
+same round trips as the DQN's training env (the checkpoint's ``env`` config; without a
+checkpoint, ``conf/env``). Writes ``control.json`` (metrics per controller, averaged over
+cavities with spread, and the traces) and ``control.png`` (r, K and the angles over time,
+the paper's fig. 7) into the run directory, and prints the table.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from laserrl.checkpoint import load_checkpoint
+from laserrl.config import ConfigError, _number, user_errors
+from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillClimbParams, RandomSearch, RandomSearchParams
+from laserrl.control.esc import ESCParams, ExtremumSeeking
+from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
+from laserrl.control.metrics import per_cavity, summarise
+from laserrl.control.plant import CavityPlant
+from laserrl.control.scenarios import Scenario
+from laserrl.envs.laser_env import ANGLE_NAMES
+
+CONF_DIR = str(Path(__file__).resolve().parent.parent.parent / "conf")
+#: ``controller=all`` runs these, in this order
+ALL = ("random_search", "hill_climb", "ga", "esc", "rl", "hybrid")
+NEEDS_CHECKPOINT = ("rl", "hybrid")
+METRICS = ("frac_locked", "mean_r", "first_lock_step", "recovery_steps", "round_trips")
+
+
+def _params(cls, cfg: Mapping[str, Any], where: str):
+    """Dataclass ``cls`` from a controller config (without ``name``); errors name the config."""
+    kwargs = {k: v for k, v in cfg.items() if k != "name"}
+    try:
+        return cls(**kwargs)
+    except ValueError as err:
+        raise ConfigError(f"{where}: {err}") from None
+    except TypeError as err:
+        raise ConfigError(f"{where}: {err}") from None
+
+
+def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavities: int, seed: int, rl_policy=None,
+                     rl_steps_deg=None, where: str = "controller"):
+    """The controller ``name`` from its config; ``rl_policy`` (greedy TensorDict policy) for rl/hybrid."""
+    if name in NEEDS_CHECKPOINT and rl_policy is None:
+        raise ConfigError(f"controller {name} needs a DQN: give checkpoint=PATH (a laserrl-train checkpoint)")
+    try:
+        if name == "esc":
+            return ExtremumSeeking(_params(ESCParams, ccfg, where), controlled, num_cavities)
+        if name == "random_search":
+            return RandomSearch(_params(RandomSearchParams, ccfg, where), controlled, num_cavities, seed)
+        if name == "hill_climb":
+            return HillClimb(_params(HillClimbParams, ccfg, where), controlled, num_cavities, seed)
+        if name == "ga":
+            return Genetic(_params(GeneticParams, ccfg, where), controlled, num_cavities, seed)
+        if name == "rl":
+            return DeepRL(rl_policy, controlled, rl_steps_deg)
+        if name == "hybrid":
+            rule = _params(HybridRule, {k: v for k, v in ccfg.items() if k != "esc"}, where)
+            esc = _params(ESCParams, ccfg["esc"], f"{where}.esc")
+            try:
+                esc.resolve(controlled)
+            except ValueError as err:
+                raise ConfigError(f"{where}.esc: {err}") from None
+            return Hybrid(DeepRL(rl_policy, controlled, rl_steps_deg), esc, rule, controlled, num_cavities)
+    except ValueError as err:
+        if isinstance(err, ConfigError):
+            raise
+        raise ConfigError(f"{where}: {err}") from None
+    raise ConfigError(f"unknown controller {name!r}; choose from {list(ALL) + ['all']}")
+
+
+def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.ndarray, init_angles_deg: np.ndarray,
+                    progress: bool = False) -> dict:
+    """Run every controller on its own B cavities of one plant (B x len(controllers) cavities,
+    stepped together: one batched physics call per round trip for all of them).
+
+    K (B, T) and the start angles (B, 4) deg are the same for every controller. Returns per
+    controller the traces as numpy arrays: ``r`` (B, T) after each step, ``angles`` (B, T, 4)
+    deg applied in each step, ``round_trips`` (B, T), ``mode`` (B, T) of a hybrid (0 deep RL,
+    1 ESC) or None.
+    """
+    B, T = K.shape
+    n = len(controllers)
+    if plant.num_cavities != B * n:
+        raise ValueError(f"the plant has {plant.num_cavities} cavities; {n} controllers x {B} cavities needed")
+    Kt = torch.as_tensor(np.tile(K, (n, 1)), dtype=torch.float64)
+    obs = plant.reset(torch.as_tensor(np.tile(init_angles_deg, (n, 1)), dtype=torch.float64), Kt[:, 0])
+    part = {name: slice(i * B, (i + 1) * B) for i, name in enumerate(controllers)}
+    angles_now = plant.angles_deg
+    for name, c in controllers.items():
+        c.reset(obs[part[name]], angles_now[part[name]])
+    r = np.zeros((B * n, T))
+    angles = np.zeros((B * n, T, 4))
+    round_trips = np.zeros((B * n, T), dtype=np.int64)
+    mode = {name: np.zeros((B, T), dtype=np.int64) for name, c in controllers.items() if hasattr(c, "mode")}
+    for t in range(T):
+        plant.set_K(Kt[:, t])
+        angles_now = plant.angles_deg
+        command = torch.cat([c.act(obs[part[name]], angles_now[part[name]]) for name, c in controllers.items()])
+        for name in mode:
+            mode[name][:, t] = controllers[name].mode.cpu().numpy()
+        obs = plant.step(command)
+        r[:, t] = plant.r.cpu().numpy()
+        angles[:, t] = plant.angles_deg.cpu().numpy()
+        round_trips[:, t] = obs["round_trips"].reshape(-1).cpu().numpy()
+        if progress and ((t + 1) % max(1, T // 10) == 0 or t + 1 == T):
+            means = ", ".join(f"{name} {r[part[name], : t + 1].mean():.3f}" for name in controllers)
+            print(f"step {t + 1}/{T}: mean r {means}", flush=True)
+    return {name: {"r": r[part[name]], "angles": angles[part[name]], "round_trips": round_trips[part[name]],
+                   "mode": mode.get(name)} for name in controllers}
+
+
+def _check(cfg: DictConfig) -> None:
+    _number(cfg, "num_cavities", low=1, integer=True)
+    _number(cfg, "seed", integer=True)
+    _number(cfg, "locked_r", low=0)
+    _number(cfg, "hold_steps", low=1, integer=True)
+    if cfg.threads is not None:
+        _number(cfg, "threads", low=1, integer=True)
+    if cfg.metric not in METRICS:
+        raise ConfigError(f"metric must be one of {list(METRICS)}, got {cfg.metric!r}")
+    if cfg.controller.get("name") == "all" and cfg.metric_controller not in ALL:
+        raise ConfigError(f"metric_controller must be one of {list(ALL)}, got {cfg.metric_controller!r}")
+    if cfg.controlled is not None:
+        names = list(cfg.controlled)
+        if not names or len(set(names)) != len(names) or any(n not in ANGLE_NAMES for n in names):
+            raise ConfigError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {names!r}")
+
+
+def _rounded(x: np.ndarray, digits: int = 5) -> list:
+    return np.round(x, digits).tolist()
+
+
+def run_control(cfg: DictConfig) -> dict:
+    """The app without Hydra's main (tests call it with a composed config); returns control.json."""
+    _check(cfg)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
+    container = OmegaConf.to_container(cfg, resolve=True)
+    scfg = container["scenario"]
+    try:
+        scenario = Scenario(**scfg)
+    except TypeError as err:
+        raise ConfigError(f"scenario: {err}") from None
+    ccfg = container["controller"]
+    names = list(ALL) if ccfg.get("name") == "all" else [ccfg.get("name")]
+    configs = {n: ccfg[n] for n in names} if ccfg.get("name") == "all" else {names[0]: ccfg}
+    where = {n: (f"controller.{n}" if ccfg.get("name") == "all" else "controller") for n in names}
+
+    state, policy_for, steps_deg = None, None, None
+    env_cfg = dict(container["env"])
+    controlled = container["controlled"]
+    if cfg.checkpoint:
+        from laserrl.evaluate import load_agent
+
+        state = load_checkpoint(cfg.checkpoint)
+        stage = state["config"]["stage"]
+        env_cfg = dict(state["config"]["env"])  # the per-step physics the DQN was trained with
+        rl_controlled = list(stage["controlled"])
+        if controlled is not None and any(n in NEEDS_CHECKPOINT for n in names) and list(controlled) != rl_controlled:
+            raise ConfigError(f"controlled={list(controlled)} differs from the angles the checkpoint's DQN controls "
+                              f"{rl_controlled}; leave controlled unset to use those")
+        controlled = controlled or rl_controlled
+        steps_deg = list(stage["steps_deg"])
+        policy_for = lambda plant: load_agent(state, plant.env.action_spec_unbatched)  # noqa: E731
+    elif any(n in NEEDS_CHECKPOINT for n in names):
+        raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=PATH "
+                          "(a laserrl-train checkpoint)")
+    controlled = list(controlled or ["alpha1"])
+    if cfg.compile is not None:
+        env_cfg["compile"] = bool(cfg.compile)
+    B, seed = int(cfg.num_cavities), int(cfg.seed)
+    K, init_angles = scenario.sample(B, seed)
+    # every controller on its own copy of the B cavities, all in one plant
+    plant = CavityPlant(env_cfg, controlled, B * len(names), scenario.steps, seed=seed,
+                        init_fields=scenario.init_fields, device=cfg.device)
+    policy = policy_for(plant) if policy_for else None
+    controllers = {n: build_controller(n, configs[n], controlled, B, seed, policy, steps_deg, where[n]) for n in names}
+
+    t0 = time.perf_counter()
+    traces_np = run_controllers(controllers, plant, K, init_angles, progress=bool(cfg.progress))
+    seconds = time.perf_counter() - t0
+    results, traces = {}, {}
+    idx = [ANGLE_NAMES.index(a) for a in controlled]
+    for n in names:
+        trace = traces_np[n]
+        cav = per_cavity(trace["r"], trace["round_trips"], scenario.jumps["times"], float(cfg.locked_r), int(cfg.hold_steps))
+        results[n] = {"summary": summarise(cav, len(scenario.jumps["times"])), "per_cavity": cav}
+        traces[n] = {"r": _rounded(trace["r"]), "angles_deg": _rounded(trace["angles"][:, :, idx], 3)}
+        if trace["mode"] is not None:
+            traces[n]["mode"] = trace["mode"].tolist()
+            results[n]["summary"]["frac_esc"] = float((trace["mode"] == 1).mean())
+        print(f"{n}: {_row(n, results[n]['summary'])}", flush=True)
+
+    out = {
+        "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
+        "num_cavities": B, "seed": seed, "controlled": controlled, "locked_r": float(cfg.locked_r),
+        "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state else None,
+        "env": {k: env_cfg[k] for k in ("max_round_trips", "tol", "dtype") if k in env_cfg} | {"physics": env_cfg.get("physics")},
+        "seconds": round(seconds, 1), "results": results, "K": _rounded(K), "init_angles_deg": _rounded(init_angles, 3), "traces": traces,
+    }
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path = run_dir / "control.json"
+    path.write_text(json.dumps(out))
+    table = comparison_table(out)
+    (run_dir / "control.md").write_text(table + "\n")
+    if cfg.plots:
+        from laserrl.plots import plot_control
+
+        plot_control(out, run_dir / "control.png", cavity=int(cfg.plot_cavity))
+    print(table)
+    print(f"{B} cavities x {len(names)} controller(s) x {scenario.steps} steps in {seconds:.0f} s")
+    print(f"control: {path}")
+    return out
+
+
+def _fmt(s: dict, digits: int = 3, pct: bool = False) -> str:
+    if s["mean"] is None:
+        return "-"
+    if pct:
+        return f"{100 * s['mean']:.0f} % ± {100 * s['std']:.0f}"
+    return f"{s['mean']:.{digits}f} ± {s['std']:.{digits}f}"
+
+
+def _row(name: str, s: dict) -> str:
+    return (f"locked {_fmt(s['frac_locked'], pct=True)}, mean r {_fmt(s['mean_r'])}, "
+            f"first lock {_fmt(s['first_lock_step'], 1)} steps, recovery {_fmt(s['recovery_steps'], 1)} steps")
+
+
+def comparison_table(out: dict) -> str:
+    """Markdown table of the summaries (mean ± standard deviation over cavities)."""
+    lines = ["| controller | time locked (r >= %g) | mean r | steps to first lock (locked) | recovery after a jump, steps (recovered) | round trips |"
+             % out["locked_r"], "|---|---:|---:|---:|---:|---:|"]
+    for n in out["controllers"]:
+        s = out["results"][n]["summary"]
+        rec = "-" if s["recovered"] is None else f"{_fmt(s['recovery_steps'], 1)} ({100 * s['recovered']:.0f} %)"
+        lines.append(f"| {n} | {_fmt(s['frac_locked'], pct=True)} | {_fmt(s['mean_r'])} | "
+                     f"{_fmt(s['first_lock_step'], 1)} ({100 * s['locked_ever']:.0f} %) | {rec} | "
+                     f"{s['round_trips']['mean']:.0f} |")
+    return "\n".join(lines)
+
+
+def sweep_metric(out: dict, cfg: DictConfig) -> float:
+    """What ``main`` returns (for sweepers): the mean over cavities of ``cfg.metric`` for the
+    controller run, or with ``controller=all`` for ``cfg.metric_controller``; NaN if undefined."""
+    names = out["controllers"]
+    name = cfg.metric_controller if len(names) > 1 else names[0]
+    value = out["results"][name]["summary"][cfg.metric]["mean"]
+    return float(value) if value is not None else float("nan")
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="control")
+def _hydra_main(cfg: DictConfig) -> float:
+    with user_errors("laserrl-control"):
+        return sweep_metric(run_control(cfg), cfg)
+
+
+def main() -> None:
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,114 @@
+"""Deep RL as a controller, and the hybrid: deep RL finds the lock, ESC holds it.
+
+The hybrid's rule (per cavity, the paper's section 4):
+
+* deep RL -> ESC when r >= ``lock_r`` for ``lock_steps`` consecutive steps; ESC starts
+  from the current angles (estimates = angles, filters in the steady state of the
+  current r);
+* ESC -> deep RL when r < ``unlock_r`` for ``unlock_steps`` consecutive steps (the lock
+  is lost, e.g. after a jump of K that ESC's local search cannot follow).
+
+Both counters restart at every switch.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from laserrl.control.esc import ESCParams, ExtremumSeeking
+from laserrl.envs.actions import action_to_deltas
+from laserrl.envs.laser_env import ANGLE_NAMES
+
+#: controller modes recorded per step (``mode`` in control.json and the plot)
+MODE_RL, MODE_ESC = 0, 1
+
+
+class DeepRL:
+    """Greedy deep RL: ``policy`` maps the observation (``fields``, ``angles``) to a discrete
+    ``action``; the angles move by ``action_to_deltas(action, steps_deg)`` as in the env."""
+
+    name = "rl"
+
+    def __init__(self, policy: Callable[[TensorDictBase], TensorDictBase], controlled, steps_deg):
+        if len(steps_deg) != len(controlled):
+            raise ValueError(f"steps_deg needs one step per controlled angle {list(controlled)}, got {list(steps_deg)}")
+        self.policy = policy
+        self.idx = [ANGLE_NAMES.index(a) for a in controlled]
+        self.steps = torch.tensor([float(s) for s in steps_deg], dtype=torch.float64)
+
+    def reset(self, obs, angles_deg) -> None:
+        pass
+
+    def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            action = self.policy(obs.select("fields", "angles").clone())["action"]
+        command = angles_deg.clone().to(torch.float64)
+        command[:, self.idx] += action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
+        return command
+
+
+@dataclass
+class HybridRule:
+    """Switching rule of the hybrid (see the module docstring)."""
+
+    lock_r: float = 0.15
+    lock_steps: int = 1
+    unlock_r: float = 0.1
+    unlock_steps: int = 3
+
+    def __post_init__(self):
+        for name in ("lock_r", "unlock_r"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        for name in ("lock_steps", "unlock_steps"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or int(v) != v or v < 1:
+                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+        if self.unlock_r > self.lock_r:
+            raise ValueError(f"unlock_r ({self.unlock_r}) must be <= lock_r ({self.lock_r}), or the modes would chatter")
+
+
+class Hybrid:
+    """Deep RL until locked, then ESC; back to deep RL when the lock is lost (``HybridRule``)."""
+
+    name = "hybrid"
+
+    def __init__(self, rl: DeepRL, esc_params: ESCParams, rule: HybridRule, controlled, num_cavities: int):
+        self.rl, self.rule = rl, rule
+        self.esc = ExtremumSeeking(esc_params, controlled, num_cavities)
+        self.mode = torch.full((num_cavities,), MODE_RL, dtype=torch.int64)
+        self._above = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r >= lock_r
+        self._below = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r < unlock_r
+        self.switches = torch.zeros(num_cavities, dtype=torch.int64)
+
+    def reset(self, obs, angles_deg) -> None:
+        self.mode.fill_(MODE_RL)
+        self._above.zero_()
+        self._below.zero_()
+        self.switches.zero_()
+        self.rl.reset(obs, angles_deg)
+
+    def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
+        r = obs["r"].reshape(-1).to(torch.float64).cpu()
+        self._above = torch.where(r >= self.rule.lock_r, self._above + 1, 0)
+        self._below = torch.where(r < self.rule.unlock_r, self._below + 1, 0)
+        esc = self.mode == MODE_ESC
+        engage = ~esc & (self._above >= self.rule.lock_steps)
+        release = esc & (self._below >= self.rule.unlock_steps)
+        if bool(engage.any()):
+            self.esc.reset(obs, angles_deg, engage)
+        switched = engage | release
+        self.mode = torch.where(engage, MODE_ESC, torch.where(release, MODE_RL, self.mode))
+        self._above = torch.where(switched, 0, self._above)
+        self._below = torch.where(switched, 0, self._below)
+        self.switches += switched.long()
+        # ESC runs for every cavity (its state is restarted on engagement), and is used where engaged
+        cmd_esc = self.esc.act(obs, angles_deg)
+        cmd_rl = self.rl.act(obs, angles_deg)
+        return torch.where((self.mode == MODE_ESC)[:, None].to(cmd_rl.device), cmd_esc, cmd_rl)

@@ -1,0 +1,72 @@
+"""Metrics of a controlled run, per cavity and averaged over cavities.
+
+With r(t) the reward after agent step t (t = 0 .. T-1) and "locked" meaning r >= locked_r:
+
+* ``frac_locked``: fraction of the T steps that are locked;
+* ``mean_r``: mean of r over the T steps;
+* ``first_lock_step``: steps until the first lock, t + 1 for the first t that starts a run of
+  ``hold_steps`` consecutive locked steps (None if there is none);
+* ``recovery_steps``: for every jump of K at step t_j, s - t_j for the first s >= t_j that
+  starts a run of ``hold_steps`` locked steps before the next jump (or the end); 0 when the
+  lock survives the jump, None when the cavity does not lock again in time;
+* ``round_trips``: cavity round trips spent over the run.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+
+def lock_starts(locked: np.ndarray, hold_steps: int) -> np.ndarray:
+    """(B, T) bool: step t starts a run of ``hold_steps`` locked steps (within the array)."""
+    B, T = locked.shape
+    if T < hold_steps:
+        return np.zeros_like(locked)
+    windows = np.lib.stride_tricks.sliding_window_view(locked, hold_steps, axis=1).all(-1)  # (B, T - hold + 1)
+    return np.concatenate([windows, np.zeros((B, hold_steps - 1), dtype=bool)], axis=1)
+
+
+def _first(mask: np.ndarray) -> list[int | None]:
+    return [int(np.argmax(row)) if row.any() else None for row in mask]
+
+
+def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int], locked_r: float,
+               hold_steps: int) -> dict:
+    """Metrics of every cavity from r (B, T) and round trips (B, T)."""
+    B, T = r.shape
+    locked = r >= locked_r
+    first = _first(lock_starts(locked, hold_steps))
+    bounds = list(jump_times) + [T]
+    recovery = []
+    for j, t0 in enumerate(jump_times):
+        starts = lock_starts(locked[:, t0: bounds[j + 1]], hold_steps)
+        recovery.append(_first(starts))  # relative to the jump already
+    return {
+        "frac_locked": locked.mean(1).tolist(),
+        "mean_r": r.mean(1).tolist(),
+        "first_lock_step": [None if f is None else f + 1 for f in first],
+        "recovery_steps": [[recovery[j][b] for j in range(len(jump_times))] for b in range(B)],
+        "round_trips": round_trips.sum(1).astype(int).tolist(),
+    }
+
+
+def spread(values: Sequence[float | None]) -> dict:
+    """Mean, standard deviation, min and max over cavities of the defined values; ``n`` of them."""
+    x = np.array([v for v in values if v is not None], dtype=np.float64)
+    if x.size == 0:
+        return {"mean": None, "std": None, "min": None, "max": None, "n": 0}
+    return {"mean": float(x.mean()), "std": float(x.std()), "min": float(x.min()), "max": float(x.max()),
+            "n": int(x.size)}
+
+
+def summarise(cav: dict, num_jumps: int) -> dict:
+    """Average over cavities (with spread) of ``per_cavity``'s metrics."""
+    B = len(cav["mean_r"])
+    out = {k: spread(cav[k]) for k in ("frac_locked", "mean_r", "first_lock_step", "round_trips")}
+    out["locked_ever"] = sum(v is not None for v in cav["first_lock_step"]) / B
+    pooled = [rec[j] for rec in cav["recovery_steps"] for j in range(num_jumps)]
+    out["recovery_steps"] = spread(pooled)
+    out["recovered"] = (sum(v is not None for v in pooled) / len(pooled)) if pooled else None
+    out["recovery_by_jump"] = [spread([rec[j] for rec in cav["recovery_steps"]]) for j in range(num_jumps)]
+    return out

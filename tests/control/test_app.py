@@ -1,0 +1,142 @@
+"""laserrl-control: every new config composes and builds; hostile values give one clear
+error before any simulation; the real entry point runs all controllers with a DQN trained
+here (tiny) and writes control.json, the table and the figure."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from laserrl.config import ConfigError
+from laserrl.control import Scenario
+from laserrl.control.app import ALL, build_controller, run_control, sweep_metric
+
+CONF = Path(__file__).resolve().parents[2] / "conf"
+CONTROLLERS = sorted(p.stem for p in (CONF / "controller").glob("*.yaml"))
+SCENARIOS = sorted(p.stem for p in (CONF / "scenario").glob("*.yaml"))
+SMOKE_PHYSICS = ["env.physics.n=64", "env.physics.z_steps=2", "env.max_round_trips=5", "env.compile=false"]
+
+
+def _compose(overrides, name="control"):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory):
+    """A tiny DQN (siso, alpha1) trained with the smoke settings."""
+    from laserrl.train import train
+
+    out = tmp_path_factory.mktemp("dqn")
+    cfg = _compose(["experiment=smoke", *SMOKE_PHYSICS[:2], f"run_dir={out}", "train.progress=false",
+                    "eval.plots=false"], name="config")
+    train(cfg)
+    return out / "checkpoints" / "last.pt"
+
+
+def test_controller_groups():
+    assert set(CONTROLLERS) == {*ALL, "all"}
+
+
+@pytest.mark.parametrize("controller", CONTROLLERS)
+def test_every_controller_config_composes_and_builds(controller):
+    cfg = _compose([f"controller={controller}"])
+    assert cfg.controller.name == controller
+    ccfg = OmegaConf.to_container(cfg.controller, resolve=True)
+    for name in (ALL if controller == "all" else [controller]):
+        sub = ccfg[name] if controller == "all" else ccfg
+        policy = (lambda td: td) if name in ("rl", "hybrid") else None
+        c = build_controller(name, sub, ["alpha1", "alpha2"], 2, 0, policy, [2.0, 2.0])
+        assert c.name == name
+
+
+@pytest.mark.parametrize("scenario", SCENARIOS)
+def test_every_scenario_config_composes_and_builds(scenario):
+    cfg = _compose([f"scenario={scenario}"])
+    assert Scenario(**OmegaConf.to_container(cfg.scenario, resolve=True)).name == scenario
+
+
+def _run(overrides, tmp_path):
+    return run_control(_compose(["scenario=constant", *SMOKE_PHYSICS, "num_cavities=2", "scenario.steps=4", "plots=false",
+                                 f"run_dir={tmp_path}", *overrides]))
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (["controller=esc", "controller.gain=-1"], "controller: gain"),
+    (["controller=esc", "controller.frequency.alpha2=0.125", "controlled=[alpha1,alpha2]"], "controller: frequency"),
+    (["controller=ga", "controller.elite=9"], "elite"),
+    (["controller=hybrid"], "checkpoint=PATH"),
+    (["controller=esc", "num_cavities=0"], "num_cavities"),
+    (["controller=esc", "controlled=[alpha7]"], "controlled"),
+    (["controller=esc", "metric=speed"], "metric"),
+    (["controller=esc", "scenario.jumps.times=[9]"], "scenario.jumps.times"),
+])
+def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
+    with pytest.raises(ValueError, match=match):
+        _run(overrides, tmp_path)
+    assert not (tmp_path / "control.json").exists()
+
+
+@pytest.mark.parametrize("overrides, match", [
+    (["controller=rl", "controlled=[alpha2]"], "differs"),
+    (["controller=hybrid", "controller.unlock_r=0.3"], "controller: unlock_r"),
+    (["controller=all", "controller.hybrid.esc.lowpass_cutoff=0.7"], "controller.hybrid.esc: lowpass_cutoff"),
+    (["controller=all", "metric_controller=best"], "metric_controller"),
+])
+def test_hostile_values_with_a_checkpoint(checkpoint, overrides, match, tmp_path):
+    with pytest.raises(ConfigError, match=match):
+        _run([*overrides, f"checkpoint={checkpoint}"], tmp_path)
+    assert not (tmp_path / "control.json").exists()
+
+
+def test_entry_point_runs_every_controller(checkpoint, tmp_path):
+    steps, jump = 10, 5
+    exe = Path(sys.executable).parent / "laserrl-control"
+    res = subprocess.run([str(exe), "controller=all", "scenario=drift_jumps", f"checkpoint={checkpoint}", "num_cavities=2",
+                          f"scenario.steps={steps}", f"scenario.jumps.times=[{jump}]", "compile=false",
+                          f"hydra.run.dir={tmp_path}"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert f"control: {tmp_path / 'control.json'}" in res.stdout
+    out = json.loads((tmp_path / "control.json").read_text())
+    assert out["controllers"] == list(ALL) and out["controlled"] == ["alpha1"]
+    assert out["env"]["max_round_trips"] == 5 and out["env"]["physics"]["n"] == 64  # the checkpoint's per-step physics
+    K = out["K"]
+    assert len(K) == 2 and len(K[0]) == steps and all(k[jump] != k[jump - 1] for k in K)
+    for name in ALL:
+        res_n, tr = out["results"][name], out["traces"][name]
+        s, cav = res_n["summary"], res_n["per_cavity"]
+        assert 0.0 <= s["frac_locked"]["mean"] <= 1.0 and s["frac_locked"]["n"] == 2
+        # the summary is the mean over cavities of the per-cavity values, which come from the trace
+        for b in range(2):
+            assert cav["mean_r"][b] == pytest.approx(sum(tr["r"][b]) / steps, abs=1e-4)
+            assert cav["frac_locked"][b] == sum(x >= 0.1 for x in tr["r"][b]) / steps
+        assert s["mean_r"]["mean"] == pytest.approx(sum(cav["mean_r"]) / 2)
+        assert all(len(rec) == 1 for rec in cav["recovery_steps"])
+        assert all(steps <= n <= 5 * steps for n in cav["round_trips"])  # 1 to 5 round trips per step
+        assert len(tr["r"][0]) == steps and len(tr["angles_deg"][0]) == steps
+    assert set(out["traces"]["hybrid"]["mode"][0]) <= {0, 1} and "mode" not in out["traces"]["esc"]
+    # deep RL moves alpha1 in the checkpoint's 2 deg steps
+    a = [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
+    assert all(abs(abs(a[i + 1] - a[i]) - 2.0) < 1e-3 or abs(a[i + 1] - a[i]) < 1e-3 for i in range(steps - 1))
+    assert (tmp_path / "control.png").stat().st_size > 0
+    table = (tmp_path / "control.md").read_text()
+    assert all(f"| {n} |" in table for n in ALL)
+
+
+def test_sweep_metric(tmp_path):
+    cfg = _compose(["controller=esc", "scenario=constant", *SMOKE_PHYSICS, "num_cavities=2", "scenario.steps=3", "plots=false",
+                    f"run_dir={tmp_path}", "metric=mean_r"])
+    out = run_control(cfg)
+    assert sweep_metric(out, cfg) == pytest.approx(out["results"]["esc"]["summary"]["mean_r"]["mean"])
+
+
+def test_hostile_value_on_the_command_line_is_one_line(tmp_path):
+    exe = Path(sys.executable).parent / "laserrl-control"
+    res = subprocess.run([str(exe), "controller=esc", "controller.max_step_deg=0", f"hydra.run.dir={tmp_path}"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert res.stderr.strip().splitlines() == ["laserrl-control: error: controller: max_step_deg must be > 0, got 0"]
+    assert not (tmp_path / "control.json").exists()

@@ -1,0 +1,75 @@
+"""The hybrid hands over to ESC and back by its documented rule (scripted policy, scripted r),
+and deep RL as a controller moves the angles exactly as the env's actions do."""
+import pytest
+import torch
+from tensordict import TensorDict
+
+from laserrl.control import MODE_ESC, MODE_RL, DeepRL, ESCParams, Hybrid, HybridRule
+from laserrl.envs.actions import action_to_deltas
+
+
+class AlwaysIncrease:
+    """Scripted policy: the 'increase' action of every controlled angle (digits 2)."""
+
+    def __init__(self, m=1):
+        self.action = sum(2 * 3**j for j in range(m))
+
+    def __call__(self, td):
+        return td.set("action", torch.full(td.batch_size, self.action, dtype=torch.int64))
+
+
+def _obs(r):
+    r = torch.as_tensor(r, dtype=torch.float32).reshape(-1, 1)
+    B = r.shape[0]
+    return TensorDict(fields=torch.zeros(B, 4, 8), angles=torch.zeros(B, 4), r=r, batch_size=[B])
+
+
+def test_hybrid_hands_over_and_back_by_the_rule():
+    rule = HybridRule(lock_r=0.15, lock_steps=2, unlock_r=0.1, unlock_steps=3)
+    hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(), rule, ["alpha1"], 2)
+    # cavity 0: locks (2 steps >= 0.15), dips below 0.1 for 2 steps (stays with ESC), then 3 (back to RL)
+    # cavity 1: only single steps >= 0.15, never 2 in a row: stays with deep RL
+    r0 = [0.05, 0.16, 0.17, 0.20, 0.05, 0.05, 0.20, 0.05, 0.05, 0.05, 0.20, 0.20]
+    r1 = [0.05, 0.16, 0.05, 0.16, 0.05, 0.16, 0.05, 0.16, 0.05, 0.16, 0.05, 0.16]
+    expect0 = [0, 0, 1, 1, 1, 1, 1, 1, 1, 0, 0, 1]
+    angles = torch.tensor([[-30.0, 3.0, 28.0, 88.0]] * 2, dtype=torch.float64)
+    hybrid.reset(_obs([0.0, 0.0]), angles)
+    modes = []
+    for t in range(len(r0)):
+        command = hybrid.act(_obs([r0[t], r1[t]]), angles)
+        modes.append(hybrid.mode.tolist())
+        rl_mode = hybrid.mode == MODE_RL
+        # deep RL: +2 deg on alpha1; ESC: its estimate plus a dither of at most a = 1 deg; other angles held
+        assert torch.allclose(command[rl_mode, 0], angles[rl_mode, 0] + 2.0)
+        dither = command[:, 0].numpy() - hybrid.esc.theta[:, 0]
+        assert (abs(dither[~rl_mode.numpy()]) <= 1.0 + 1e-9).all()
+        assert torch.equal(command[:, 1:], angles[:, 1:])
+    assert [m[0] for m in modes] == expect0
+    assert [m[1] for m in modes] == [MODE_RL] * len(r1)
+    assert hybrid.switches.tolist() == [3, 0]
+
+
+def test_esc_restarts_from_the_current_angles_on_engagement():
+    hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(amplitude_deg=0.5),
+                    HybridRule(lock_steps=1), ["alpha1"], 1)
+    angles = torch.tensor([[-24.0, 3.0, 28.0, 88.0]], dtype=torch.float64)
+    hybrid.reset(_obs([0.0]), angles)
+    command = hybrid.act(_obs([0.2]), angles)
+    assert hybrid.mode.item() == MODE_ESC
+    assert abs(float(command[0, 0]) - (-24.0)) <= 0.5 + 1e-9
+
+
+@pytest.mark.parametrize("bad, match", [({"unlock_r": 0.2, "lock_r": 0.15}, "unlock_r"), ({"lock_steps": 0}, "lock_steps"),
+                                        ({"unlock_steps": 1.5}, "unlock_steps"), ({"lock_r": float("nan")}, "lock_r")])
+def test_bad_rule_names_the_value(bad, match):
+    with pytest.raises(ValueError, match=match):
+        HybridRule(**bad)
+
+
+def test_deep_rl_controller_moves_angles_as_the_env_actions_do():
+    steps = torch.tensor([2.0, 0.5], dtype=torch.float64)
+    rl = DeepRL(lambda td: td.set("action", torch.arange(9)), ["alpha1", "alpha3"], steps.tolist())
+    angles = torch.zeros(9, 4, dtype=torch.float64)
+    command = rl.act(TensorDict(fields=torch.zeros(9, 4, 8), angles=torch.zeros(9, 4), batch_size=[9]), angles)
+    deltas = action_to_deltas(torch.arange(9), steps)
+    assert torch.equal(command[:, [0, 2]], deltas) and torch.equal(command[:, [1, 3]], angles[:, [1, 3]])
