@@ -38,9 +38,9 @@ REPLAY_PREFIX = "replay-"
 
 #: Overrides that ``resume`` accepts with a new value: they change how long or how visibly the
 #: run goes on, not what it learns. Any other key must keep the run's saved value.
-RESUME_OVERRIDES = ("train.total_frames", "train.max_minutes", "train.checkpoint_every_frames", "train.progress",
-                    "train.plots", "eval.after_training", "eval.plots", "eval.compile", "env.compile", "threads",
-                    "collector.worker_threads", "metric")
+RESUME_OVERRIDES = ("train.total_frames", "train.max_minutes", "train.checkpoint_every_frames", "train.keep_replay",
+                    "train.progress", "train.plots", "eval.after_training", "eval.plots", "eval.compile", "env.compile",
+                    "threads", "collector.worker_threads", "metric")
 
 
 @dataclass
@@ -123,10 +123,11 @@ class RunSaver:
         self.replay_name = saved.get("replay") if saved else None
         self.saved_frames = saved.get("frames") if saved else None
 
-    def save(self, state: dict) -> Path:
-        """Save ``state`` (with ``frames``) and the replay buffer; returns the checkpoint path."""
+    def save(self, state: dict, with_replay: bool = True) -> Path:
+        """Save ``state`` (with ``frames``) and, unless ``with_replay`` is false, the replay buffer;
+        returns the checkpoint path. A checkpoint without its buffer cannot be resumed."""
         frames = int(state["frames"])
-        name = f"{REPLAY_PREFIX}{frames:010d}" if len(self.replay) else None
+        name = f"{REPLAY_PREFIX}{frames:010d}" if len(self.replay) and with_replay else None
         self.dir.mkdir(parents=True, exist_ok=True)
         if name is not None and name != self.replay_name:  # the buffer only changes with new frames
             tmp = self.dir / f"{name}.tmp"
@@ -158,6 +159,9 @@ def load_run(path: str | os.PathLike) -> dict:
         if not (replay_dir / "buffer_metadata.json").is_file():
             raise CheckpointError(f"checkpoint {ckpt} names the replay buffer {replay_dir}, which is missing or incomplete")
         state["replay_dir"] = str(replay_dir)
+    elif state["frames"] > 0:
+        raise CheckpointError(f"checkpoint {ckpt} was saved without its replay buffer (train.keep_replay=false), so "
+                              f"the run cannot continue; use it with init_from= to warm-start a new run instead")
     return state
 
 

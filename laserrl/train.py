@@ -151,7 +151,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if logger is not None:
         log_config(logger, cfg)
 
-    def save() -> Path:
+    def save(with_replay: bool = True) -> Path:
         """Checkpoint (with the replay buffer) and history.json of the run as it stands."""
         run.train_seconds = time.perf_counter() - started
         path = saver.save({
@@ -163,7 +163,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "config": OmegaConf.to_container(cfg, resolve=True),
             "resume": {"agent": agent_state(loss, egreedy, target), "counters": dataclasses.asdict(run),
                        "rng": rng_state(), "logger": logger.state_dict() if logger is not None else None},
-        })
+        }, with_replay)
         save_json(run.history, run_dir / "history.json")
         return path
 
@@ -189,11 +189,12 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
         if success >= target_rate:
             run.frames_to_success = 0
-    if run.frames_to_success is None and time.perf_counter() - started > max_seconds:
-        tqdm.write(f"train.max_minutes={cfg.train.max_minutes} already used by this run; give more to train on")
-    finished = run.frames_to_success is not None or time.perf_counter() - started > max_seconds
+    out_of_time = time.perf_counter() - started > max_seconds
+    if out_of_time and run.frames_to_success is None:
+        tqdm.write(f"train.max_minutes={cfg.train.max_minutes} already used by this run; raise it to train on")
     # a resumed run's envs start new episodes (their mid-episode state is not saved), seeded from (seed, frames)
-    collector = None if finished else make_collector(cfg, policy, env_seed(cfg.seed, run.frames), run.frames)
+    collector = (None if run.frames_to_success is not None or out_of_time
+                 else make_collector(cfg, policy, env_seed(cfg.seed, run.frames), run.frames))
     if resume is not None:
         set_rng_state(resume["resume"]["rng"])  # the global generators continue from the checkpoint
     between_batches = True  # the state is that of whole batches: a checkpoint of it is consistent
@@ -265,9 +266,10 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         bar.close()
         if collector is not None:
             collector.shutdown()
-    ckpt_path = save()
     if stop.signum is not None:
+        save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))
+    ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
 
     # --- evaluate, plot
     summary = {"train_seconds": run.train_seconds, "frames": run.frames, "updates": run.updates,

@@ -227,11 +227,12 @@ def test_a_kill_between_buffer_and_checkpoint_keeps_the_old_pair(tmp_path, monke
     ("foreign", "is not a laserrl checkpoint"),
     ("old", "has no training state to resume"),
     ("no buffer", "which is missing or incomplete"),
+    ("saved without buffer", r"saved without its replay buffer \(train.keep_replay=false\)"),
     ("buffer truncated", "replay buffer .* is unreadable"),
 ])
 def test_bad_checkpoints_name_the_path_and_change_nothing(tmp_path, damage, message):
     replay = _filled_replay(frames=40)
-    RunSaver(tmp_path, replay).save(_state(40))
+    RunSaver(tmp_path, replay).save(_state(40), with_replay=damage != "saved without buffer")
     ckpt, buffer = tmp_path / "checkpoints" / "last.pt", tmp_path / "checkpoints" / "replay-0000000040"
     if damage == "missing":
         ckpt.unlink()
@@ -245,7 +246,7 @@ def test_bad_checkpoints_name_the_path_and_change_nothing(tmp_path, damage, mess
         torch.save(state, ckpt)
     elif damage == "no buffer":
         shutil.rmtree(buffer)
-    else:
+    elif damage == "buffer truncated":
         (buffer / "sampler" / "sampler_metadata.json").write_text('{"_alpha": 0.7, "_be')
     before = _snapshot(tmp_path)
     with pytest.raises(CheckpointError, match=message) as info:
