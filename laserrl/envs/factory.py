@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import re
 from typing import Any, Mapping
 
@@ -47,7 +48,7 @@ def make_params(env_cfg: Mapping[str, Any]) -> CavityParams:
 def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs: int, seed: int,
              device: str = "cpu", centred: bool = True, threads: int | None = None, **task_overrides):
     """A batched LaserCavityEnv, with the paper's reward centring if ``centred``."""
-    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+    if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"env.num_envs must be a positive integer, got {num_envs!r}")
     if threads:
         torch.set_num_threads(int(threads))
@@ -56,7 +57,7 @@ def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs:
     if centred:
         center, scale = env_cfg["reward_center"], env_cfg["reward_scale"]
         for name, value in (("reward_center", center), ("reward_scale", scale)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
                 raise ValueError(f"env.{name} must be a finite number, got {value!r}")
         if not scale > 0:
             raise ValueError(f"env.reward_scale must be > 0, got {scale!r}")

@@ -12,6 +12,7 @@ not read are put next to the observation: ``r`` (raw reward), ``round_trips``.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields as dc_fields
 from typing import Mapping, Sequence
 
@@ -34,7 +35,7 @@ MAX_INIT_AMPLITUDE = 10.0
 
 def _number(value, name: str) -> float:
     """A finite real number (not a bool, string or list), as float."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     return float(value)
 
@@ -43,7 +44,7 @@ def _range(value, name: str) -> tuple[float, float]:
     """A fixed value or a [lo, hi] range, as (lo, hi)."""
     if isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
         lo, hi = (_number(x, name) for x in value)
-    elif isinstance(value, (int, float)) and not isinstance(value, bool):
+    elif isinstance(value, numbers.Real) and not isinstance(value, bool):
         lo = hi = _number(value, name)
     else:
         raise ValueError(f"{name} must be a number or a [low, high] pair, got {value!r}")
@@ -119,7 +120,7 @@ class LaserTask:
                 raise ValueError(f"{name} must be > 0{f' and <= {largest:g}' if largest < math.inf else ''}, got {value!r}")
         for name in ("max_round_trips", "max_steps"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
                     or int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
