@@ -3,7 +3,6 @@ resumed continues its counters and logs without loss or duplicates; the checkpoi
 replay buffer pair survives a kill at any point; bad checkpoints give one clear error and
 change nothing; resume refuses overrides that would change the run."""
 import json
-import os
 import shutil
 import signal
 import subprocess
@@ -15,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_replay
@@ -258,13 +258,11 @@ def test_bad_checkpoints_name_the_path_and_change_nothing(tmp_path, damage, mess
 # ----------------------------------------------------------------------------- which overrides resume accepts
 def _compose(overrides):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose(config_name="config", overrides=overrides, return_hydra_config=False)
+        return compose(config_name="config", overrides=overrides)
 
 
 @pytest.fixture(scope="module")
 def saved_run():
-    from omegaconf import OmegaConf
-
     saved = OmegaConf.to_container(_compose(["experiment=smoke", "optim.lr=3e-4", "run_dir=/runs/a"]), resolve=True)
     return {"config": saved, "run_dir": "/runs/b"}
 
