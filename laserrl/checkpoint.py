@@ -1,6 +1,7 @@
 """Checkpoints: one file per run state, written atomically (write, then rename)."""
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -29,13 +30,23 @@ def save_checkpoint(state: dict[str, Any], path: str | os.PathLike) -> Path:
     return path
 
 
+def save_json(obj: Any, path: str | os.PathLike, indent: int | None = None) -> Path:
+    """Write ``obj`` as JSON atomically (write, then rename): readers see the old file or the new one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=indent))
+    os.replace(tmp, path)
+    return path
+
+
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     if path.is_dir():
-        for candidate in (path / "checkpoints" / "last.pt", path / "last.pt"):
-            if candidate.exists():
-                path = candidate
-                break
+        candidates = [c for c in (path / "checkpoints" / "last.pt", path / "last.pt") if c.exists()]
+        if not candidates:
+            raise CheckpointError(f"checkpoint not found: no checkpoints/last.pt in {path}")
+        path = candidates[0]
     if not path.exists():
         raise CheckpointError(f"checkpoint not found: {path}")
     try:

@@ -25,13 +25,14 @@ def run_curriculum(cfg: DictConfig) -> dict:
     for key, values in per_stage.items():
         if len(values) != len(stages):
             raise ConfigError(f"curriculum.{key} needs one entry per stage ({len(stages)}), got {len(values)}")
+    known = sorted(p.stem for p in (Path(CONF_DIR) / "stage").glob("*.yaml"))
+    for name in stages:  # all checked before the first stage trains
+        if name not in known:
+            raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: {known}")
     previous = cfg.init_from
     summary: dict = {}
     for i, name in enumerate(stages):
         path = Path(CONF_DIR) / "stage" / f"{name}.yaml"
-        if not path.exists():
-            raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: "
-                              f"{sorted(p.stem for p in path.parent.glob('*.yaml'))}")
         sub = _sub_config(cfg, "curriculum", Path(cfg.run_dir) / f"{i + 1:02d}-{name}", init_from=previous)
         # the stage file replaces the stage (no keys of the previous stage may linger)
         sub.stage = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))

@@ -48,11 +48,11 @@ class EpsilonSchedule:
 
     def __post_init__(self):
         if self.kind not in ("exponential", "linear"):
-            raise ValueError(f"exploration.kind must be 'exponential' or 'linear', got {self.kind!r}")
+            raise ValueError(f"agent.exploration.kind must be 'exponential' or 'linear', got {self.kind!r}")
         if not (0.0 <= self.end <= self.start <= 1.0):
-            raise ValueError(f"exploration needs 0 <= end <= start <= 1, got start={self.start}, end={self.end}")
+            raise ValueError(f"agent.exploration needs 0 <= end <= start <= 1, got start={self.start}, end={self.end}")
         if not self.decay_frames > 0:
-            raise ValueError(f"exploration.decay_frames must be > 0, got {self.decay_frames}")
+            raise ValueError(f"agent.exploration.decay_frames must be > 0, got {self.decay_frames}")
 
     def __call__(self, frames: int) -> float:
         if self.kind == "exponential":

@@ -12,8 +12,9 @@ not read are put next to the observation: ``r`` (raw reward), ``round_trips``.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields as dc_fields
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -26,19 +27,36 @@ from laserrl.physics import CavityParams, NonFiniteFieldError, noise_fields, rew
 
 ANGLE_NAMES = ("alpha1", "alpha2", "alpha3", "alpha_p")
 _DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
+#: Largest initial field amplitude (sech_amplitude, noise_scale): the cavity's states peak at
+#: |u|^2 + |v|^2 of order 1-10, and far larger fields can be compressed within a round trip
+#: beyond what the physics accepts (MAX_PEAK_POWER), which would stop an episode midway.
+MAX_INIT_AMPLITUDE = 10.0
+
+
+def _number(value, name: str) -> float:
+    """A finite real number (not a bool, string or list), as float."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
 
 
 def _range(value, name: str) -> tuple[float, float]:
     """A fixed value or a [lo, hi] range, as (lo, hi)."""
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        lo = hi = float(value)
-    elif isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
-        lo, hi = (float(x) for x in value)
+    if isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
+        lo, hi = (_number(x, name) for x in value)
+    elif isinstance(value, numbers.Real) and not isinstance(value, bool):
+        lo = hi = _number(value, name)
     else:
         raise ValueError(f"{name} must be a number or a [low, high] pair, got {value!r}")
-    if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-        raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
+    if lo > hi:
+        raise ValueError(f"{name} must have low <= high, got {value!r}")
     return lo, hi
+
+
+def _sequence(value, name: str) -> tuple:
+    if isinstance(value, str) or not isinstance(value, Sequence):
+        raise ValueError(f"{name} must be a list, got {value!r}")
+    return tuple(value)
 
 
 @dataclass
@@ -68,8 +86,10 @@ class LaserTask:
     compile: bool = False
 
     def __post_init__(self):
-        self.controlled = tuple(self.controlled)
-        self.steps_deg = tuple(float(s) for s in self.steps_deg)
+        self.controlled = _sequence(self.controlled, "controlled")
+        self.steps_deg = tuple(_number(s, "steps_deg") for s in _sequence(self.steps_deg, "steps_deg"))
+        if not all(isinstance(name, str) for name in self.controlled):
+            raise ValueError(f"controlled must name angles of {ANGLE_NAMES}, got {self.controlled!r}")
         if not self.controlled or len(set(self.controlled)) != len(self.controlled):
             raise ValueError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {self.controlled!r}")
         for name in self.controlled:
@@ -78,8 +98,10 @@ class LaserTask:
         if len(self.steps_deg) != len(self.controlled):
             raise ValueError(f"steps_deg needs one step per controlled angle ({len(self.controlled)}), got {self.steps_deg!r}")
         for s in self.steps_deg:
-            if not (math.isfinite(s) and s > 0):
+            if not s > 0:
                 raise ValueError(f"steps_deg must be positive and finite, got {self.steps_deg!r}")
+        if not isinstance(self.init_angles_deg, Mapping):
+            raise ValueError(f"init_angles_deg must map angle names to a number or a [low, high] pair, got {self.init_angles_deg!r}")
         init = dict(self.init_angles_deg)
         unknown = set(init) - set(ANGLE_NAMES)
         if unknown:
@@ -91,18 +113,21 @@ class LaserTask:
         self.K = _range(self.K, "K")
         if self.init_fields not in ("sech", "noise"):
             raise ValueError(f"init_fields must be 'sech' or 'noise', got {self.init_fields!r}")
-        for name in ("sech_amplitude", "sech_width", "noise_scale"):
-            if not (math.isfinite(getattr(self, name)) and getattr(self, name) > 0):
-                raise ValueError(f"{name} must be positive and finite, got {getattr(self, name)!r}")
+        for name, largest in (("sech_amplitude", MAX_INIT_AMPLITUDE), ("sech_width", math.inf),
+                              ("noise_scale", MAX_INIT_AMPLITUDE)):
+            value = _number(getattr(self, name), name)
+            if not 0 < value <= largest:
+                raise ValueError(f"{name} must be > 0{f' and <= {largest:g}' if largest < math.inf else ''}, got {value!r}")
         for name in ("max_round_trips", "max_steps"):
             value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < 1:
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
+                    or int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.dtype not in _DTYPES:
+        if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         if self.tol is None:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
-        if not (self.tol >= 0 and math.isfinite(self.tol)):
+        if _number(self.tol, "tol") < 0:
             raise ValueError(f"tol must be >= 0, got {self.tol!r}")
 
     @property
