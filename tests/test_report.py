@@ -33,6 +33,7 @@ TINY = [
     "report.fig3_starts=[-30]", "report.landscape.alpha1_deg=[-30,-20,5]",
     "report.landscape.map_alpha1_deg=[-30,-20,5]", "report.landscape.map_alpha2_deg=[-5,0,5]",
     "report.landscape.settle_round_trips=10", "report.generalisation.K=[0.0,0.2]", "report.generalisation.steps=3",
+    "report.control=['controller=all','num_cavities=2','scenario.steps=6','scenario.jumps.times=[2,4]']",
 ]
 
 
@@ -51,13 +52,10 @@ def test_report_writes_every_figure(smoke):
     tmp, res = smoke
     for name in FIGURES:
         path = tmp / "docs" / "figures" / f"{name}.png"
-        if name == "fig7_hybrid":  # needs laserrl.control (issue 5): skipped with a message
-            assert not path.exists() and "fig7_hybrid skipped: fig. 7 needs laserrl.control" in res.stdout
-            continue
         assert path.exists() and 0 < path.stat().st_size < 300_000, name
     doc = (tmp / "docs" / "reproduction.md").read_text()
-    assert "Not drawn: fig. 7 needs laserrl.control" in doc
-    assert doc.count("](figures/fig") == len(FIGURES) - 1
+    assert "Not drawn" not in doc
+    assert doc.count("](figures/fig") == len(FIGURES)
 
 
 def test_table_has_every_required_claim_with_numbers(smoke):
@@ -90,6 +88,10 @@ def test_report_numbers_match_what_it_measured(smoke):
     # the straight path has as many steps as the agent's and ends where the agent ended
     assert len(numbers["paths"]["r_straight"]) == numbers["paths"]["steps"] == len(numbers["paths"]["agent_path_deg"])
     assert report["meta"]["trained_on_the_spot"].keys() == {"siso", "duo", "miso", "bank"}
+    # fig. 7: every controller ran on the same cavities; the claim quotes the hybrid's measured numbers
+    control = numbers["control"]
+    assert {"hybrid", "rl", "esc", "random_search", "hill_climb", "ga"} <= set(control) and control["num_cavities"] == 2
+    assert f"hybrid: locked {control['hybrid']['frac_locked']:.2f}" in claims["hybrid"]["laserrl"]
 
 
 def _compose(tmp_path, *overrides):

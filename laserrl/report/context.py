@@ -340,6 +340,34 @@ class ReportContext:
         eval_cfg = {"K": [float(k) for k in gc["K"]], "steps": int(gc["steps"]), "compile": self.compile, "plots": False}
         return evaluate_bank(self.bank, eval_cfg, self.run_dir / "generalisation", single=self.models["siso"].path)
 
+    # ---------------------------------------------------------------- fig. 7: holding the lock
+    @cached_property
+    def control(self) -> dict:
+        """A laserrl-control control.json: the given one (``report.results.control``), or every
+        controller run here on the siso model under ``report.control`` (a small budget)."""
+        given = self.cfg["results"].get("control")
+        if given:
+            out = read_json(given, "report.results.control")
+            self.commands.setdefault("control", self.command_for(given))
+        else:
+            from laserrl.control.app import run_control
+            from laserrl.report.spot import compose_train_config
+
+            overrides = [f"checkpoint={self.models['siso'].path}", f"seed={self.seed}", "progress=false",
+                         "plots=false", f"compile={self.compile}", *self.cfg["control"]]
+            cfg = compose_train_config(overrides, config_name="control")
+            run_dir = self.run_dir / "control"
+            cfg.run_dir = str(run_dir)  # compose leaves hydra:runtime unset
+            out = run_control(cfg)
+            self.commands.setdefault("control", "laserrl-control " + " ".join(shlex.quote(o) for o in overrides))
+        results = out["results"]
+        if "hybrid" not in results:
+            raise ConfigError("report: fig. 7 needs a control run with the hybrid controller (controller=all or hybrid)")
+        self.numbers["control"] = {"scenario": out["scenario"].get("name"), "num_cavities": out["num_cavities"],
+                                   **{n: {k: r["summary"][k]["mean"] for k in ("frac_locked", "mean_r")}
+                                      for n, r in results.items()}}
+        return out
+
     @cached_property
     def transfer(self) -> list[dict]:
         """Fine-tuning rows of the transfer.json files: K, frames and episodes to success."""

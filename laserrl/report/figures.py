@@ -6,7 +6,6 @@ or raises ``FigureSkipped`` with the reason. To add a figure, decorate a functio
 """
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -229,20 +228,14 @@ def fig6_generalisation(ctx, path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ fig. 7
-@figure("fig7_hybrid", "fig. 7", "Hybrid control: the deep RL agent finds the lock, extremum seeking holds it "
-        "while K varies.")
+@figure("fig7_hybrid", "fig. 7", "Hybrid control while K drifts and jumps: deep RL finds the lock, extremum "
+        "seeking holds it; r, K and the angles over time, next to ESC alone, deep RL alone and the baselines.")
 def fig7_hybrid(ctx, path: Path) -> None:
-    # ---------------------------------------------------------------------------------------------
-    # LEAD: wire fig. 7 here. It comes from laserrl.control (issue 5, another branch): run the
-    # hybrid deep RL + extremum-seeking controller under varying K and draw r and K against time.
-    # Until then this entry is skipped with the message below.
-    # ---------------------------------------------------------------------------------------------
-    try:
-        importlib.import_module("laserrl.control")
-    except ImportError as err:
-        raise FigureSkipped(f"fig. 7 needs laserrl.control (issue 5), which is not importable here ({err})") from None
-    raise FigureSkipped("laserrl.control is importable, but fig. 7 is not wired into the report yet "
-                        "(laserrl/report/figures.py: fig7_hybrid)")
+    """From ``report.results.control`` (a laserrl-control control.json), else a small
+    ``laserrl-control controller=all`` run here with the siso model (``report.control``)."""
+    from laserrl.plots import plot_control
+
+    plot_control(ctx.control, path)
 
 
 def draw_figures(ctx, out_dir: Path, names: list[str] | None = None) -> dict[str, dict]:

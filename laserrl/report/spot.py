@@ -19,15 +19,16 @@ from omegaconf import DictConfig
 from laserrl.train import CONF_DIR
 
 
-def compose_train_config(overrides: list[str]) -> DictConfig:
-    """The training config ``laserrl-train OVERRIDES`` runs with (inside a Hydra app or not)."""
+def compose_train_config(overrides: list[str], config_name: str = "config") -> DictConfig:
+    """The config ``laserrl-train OVERRIDES`` runs with (``config_name="control"``: that of
+    ``laserrl-control``), inside a Hydra app or not."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     if GlobalHydra.instance().is_initialized():  # inside laserrl-report: the same conf/ directory
-        return compose(config_name="config", overrides=overrides)
+        return compose(config_name=config_name, overrides=overrides)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(config_name="config", overrides=overrides)
+        return compose(config_name=config_name, overrides=overrides)
 
 
 _PLAIN = re.compile(r"^[A-Za-z0-9_./:+-]+$")
