@@ -69,7 +69,7 @@ def plot_generalisation(result: dict, path: str | Path) -> Path:
     return Path(path)
 
 
-def plot_control(out: dict, path: str | Path, cavity: int = 0) -> Path:
+def plot_control(out: dict, path: str | Path, cavity: int = 0, dpi: int = 110) -> Path:
     """r, K and the controlled angles over time (paper fig. 7) from a control.json.
 
     Left: one cavity under every controller (the hybrid's ESC phases shaded). Right: r
@@ -111,6 +111,6 @@ def plot_control(out: dict, path: str | Path, cavity: int = 0) -> Path:
     axes[2, 1].set(xlabel="step", ylabel=f"fraction with r >= {out['locked_r']:g}", ylim=(-0.05, 1.05))
     axes[0, 1].legend(fontsize=7, ncol=3, loc="lower right")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return Path(path)

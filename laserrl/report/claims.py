@@ -242,8 +242,10 @@ def _episodes_finetune(ctx) -> Claim:
                  "~300 on average", "; ".join(parts) or "n/a (no transfer.json: report.results.transfer)", sources,
                  "Fine-tuning starts at epsilon 0.2 and stops when the greedy success rate reaches 0.9, checked "
                  "before training and every few hundred frames: where the K = 0.1 model already succeeds it needs 0 "
-                 "episodes. Where the locked states lie far from the starts (K = -0.2: alpha1 = 48..78 deg, "
-                 "docs/experiments.md) no run found them.")
+                 "episodes. At K = -0.2 the locked states lie far from the starts (alpha1 = 46..78 deg, "
+                 "docs/experiments.md): there training uses 60-step episodes and starts over the whole alpha1 period "
+                 "(transfer.by_K)" + ("; a run that did not succeed did not find them." if len(done) < len(rows) else
+                                      "."))
 
 
 # ---------------------------------------------------------------------------------- generalisation
@@ -278,12 +280,18 @@ def _K_bank(ctx) -> Claim:
             Ks, ok = _rule(ctx, name)
             parts.append(f"{label}: K in {_Ks(Ks, ok)} ({sum(ok)} / {len(ok)})")
     models = ", ".join(f"{k:g}" for k in g.get("bank_K", []))
+    failed = []
+    if "nearest" in g["rules"]:
+        Ks, ok = _rule(ctx, "nearest")
+        failed = [K for K, good in zip(Ks, ok) if not good]
     return Claim("K_bank", "A bank of fine-tuned models covers the whole K range", "all K in -0.2 .. 0.4 "
                  "(4 models, K = -0.2, 0, 0.2, 0.4)", "; ".join(parts) + f" (models at K = {models})",
                  ["generalisation"],
-                 "The paper does not say how the bank picks its model. The K = -0.2 model did not learn its task "
-                 "(see the fine-tuning row), so the bank fails at K < 0; highest-Q picks badly because the models' "
-                 "Q-values are not calibrated against each other (docs/experiments.md).")
+                 "The paper does not say how the bank picks its model. "
+                 + (f"The nearest-K rule fails at K = {', '.join(f'{K:g}' for K in failed)}: between the models' K, "
+                    "where the far locks are weaker or two models are equally near (docs/experiments.md). "
+                    if failed else "")
+                 + "Highest-Q picks badly because the models' Q-values are not calibrated against each other.")
 
 
 def _generalisation_command(ctx) -> str:

@@ -235,7 +235,7 @@ def fig7_hybrid(ctx, path: Path) -> None:
     ``laserrl-control controller=all`` run here with the siso model (``report.control``)."""
     from laserrl.plots import plot_control
 
-    plot_control(ctx.control, path)
+    plot_control(ctx.control, path, dpi=DPI)
 
 
 def draw_figures(ctx, out_dir: Path, names: list[str] | None = None) -> dict[str, dict]:
