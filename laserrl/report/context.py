@@ -150,7 +150,7 @@ def read_json(path: str | Path, key: str) -> Any:
 
 def frames_to_success(run_dir: Path, target: float) -> int | None:
     """Frames until the greedy success rate first reached ``target`` in a run evaluated during
-    training (``train.eval_every_frames``); None if it never did (or was never evaluated)."""
+    training (``train.eval_every_frames``) or, failing that, after it; None if it never did."""
     summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else {}
     if summary.get("frames_to_success") is not None:
         return int(summary["frames_to_success"])
@@ -158,6 +158,9 @@ def frames_to_success(run_dir: Path, target: float) -> int | None:
     for h in history:
         if h.get("eval/success_rate") is not None and h["eval/success_rate"] >= target:
             return int(h["frames"])
+    # the evaluation after training (same protocol) counts too
+    if summary.get("eval/success_rate") is not None and summary["eval/success_rate"] >= target:
+        return int(summary["frames"])
     return None
 
 
