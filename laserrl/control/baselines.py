@@ -29,27 +29,9 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from laserrl.control.checks import integer as _integer, positive as _positive, probability as _probability
 from laserrl.control.esc import observed_r
 from laserrl.envs.laser_env import ANGLE_NAMES
-
-
-def _positive(obj, *names):
-    for name in names:
-        v = getattr(obj, name)
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-            raise ValueError(f"{name} must be a positive finite number, got {v!r}")
-
-
-def _integer(obj, name, low):
-    v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v or v < low:
-        raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
-
-
-def _probability(obj, name):
-    v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
-        raise ValueError(f"{name} must lie in [0, 1], got {v!r}")
 
 
 def _range(value: Sequence[float]) -> tuple[float, float]:

@@ -17,19 +17,15 @@ local gradient only: from a state that is not mode-locked (flat r) it does not f
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
 import torch
 
+from laserrl.control.checks import is_finite_number as _finite
 from laserrl.control.filters import StepFilter
 from laserrl.envs.laser_env import ANGLE_NAMES
-
-
-def _finite(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
 
 
 def observed_r(obs) -> np.ndarray:

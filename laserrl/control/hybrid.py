@@ -12,7 +12,6 @@ Both counters restart at every switch.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -20,6 +19,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from laserrl.control.checks import is_finite_number
 from laserrl.control.esc import ESCParams, ExtremumSeeking
 from laserrl.envs.actions import action_to_deltas
 from laserrl.envs.laser_env import ANGLE_NAMES
@@ -64,7 +64,7 @@ class HybridRule:
     def __post_init__(self):
         for name in ("lock_r", "unlock_r"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            if not is_finite_number(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         for name in ("lock_steps", "unlock_steps"):
             v = getattr(self, name)

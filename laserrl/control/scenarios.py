@@ -16,12 +16,12 @@ cavity's trajectory does not depend on how many cavities run with it.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from laserrl.control.checks import is_finite_number as _finite
 from laserrl.envs.laser_env import ANGLE_NAMES
 
 
@@ -119,10 +119,6 @@ class Scenario:
             Ks.append(self.K_trajectory(rng))
             angles.append(self.init_angles(rng))
         return np.stack(Ks), np.stack(angles)
-
-
-def _finite(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
 
 
 def _pair(value, name: str, allow_number: bool = False) -> tuple[float, float]:
