@@ -1,6 +1,8 @@
 """laserrl-bench prints one table row per solver with rates, ratios and accuracy."""
 import re
 
+import pytest
+
 from laserrl.bench import main
 
 
@@ -18,3 +20,31 @@ def test_bench_prints_table_with_ratio_and_accuracy(capsys):
     scipy_row = next(line for line in out.splitlines() if line.startswith("| scipy"))
     assert float(scipy_row.split("|")[6]) < 1e-4
     assert re.search(r"best: [\d,]+ cavity round trips/s at batch \d+ = [\d,]+x the scipy reference", out)
+
+
+def test_bench_times_the_whole_machine_with_simultaneous_processes(capsys):
+    assert main(["--batch-sizes", "2", "--scipy-round-trips", "2", "--min-seconds", "0.2", "--no-compile",
+                 "--threads", "1", "--skip-accuracy", "--processes", "2", "--process-batch", "3"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| torch 2 processes x batch 3"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    rate, ratio = float(cells[2].replace(",", "")), float(cells[3].replace(",", ""))
+    scipy_1 = float(next(line for line in out.splitlines() if line.startswith("| scipy DOP853 (rtol 1e-3), 1 cavity"))
+                    .split("|")[3].replace(",", ""))
+    assert rate > 0 and abs(ratio - rate / scipy_1) <= 0.5 + 0.01 * ratio  # the ratio is against one scipy process
+    assert next(line for line in out.splitlines() if line.startswith("| scipy DOP853 (rtol 1e-3), 2 processes"))
+    assert re.search(r"whole machine: [\d,]+ cavity round trips/s with 2 processes = [\d,]+x the one-process scipy "
+                     r"reference, [\d,]+x scipy on 2 processes", out)
+
+
+def test_a_failing_benchmark_process_raises_instead_of_hanging():
+    from laserrl.bench import time_processes
+    from laserrl.physics import CavityParams
+
+    with pytest.raises(RuntimeError, match="a torch benchmark process failed"):
+        time_processes("torch", 2, 2, CavityParams(), "no-such-device", False, 0.1)
+
+
+def test_bench_refuses_a_non_positive_process_count():
+    with pytest.raises(SystemExit):
+        main(["--processes", "0"])
