@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import hydra
 import torch
@@ -202,11 +202,25 @@ def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: s
     return result
 
 
-def _stage_K(state: Mapping[str, Any]) -> float:
+def _stage_K(state: Mapping[str, Any]) -> float | tuple[float, float]:
+    """The K a checkpoint was trained at: a number, or (lo, hi) for a K range sampled at reset."""
     K = state["config"]["stage"]["K"]
-    if not isinstance(K, (int, float)):
-        raise CheckpointError(f"checkpoint {state.get('path')} was trained over a K range {K}; a bank needs one K per model")
-    return float(K)
+    if isinstance(K, (int, float)):
+        return float(K)
+    if isinstance(K, (list, tuple)) and len(K) == 2 and all(isinstance(k, (int, float)) for k in K):
+        return (float(min(K)), float(max(K)))
+    raise CheckpointError(f"checkpoint {state.get('path')} has stage.K = {K!r}; a bank needs a number or a [lo, hi] range")
+
+
+def nearest_model(model_K: Sequence[float | tuple[float, float]], K: float) -> int:
+    """Index of the bank model for K: the first model fine-tuned over a K range that holds K;
+    otherwise the model whose K (or the centre of whose range) is nearest, ties going to
+    the first model in the bank."""
+    for j, m in enumerate(model_K):
+        if not isinstance(m, (int, float)) and m[0] <= K <= m[1]:
+            return j
+    centres = [m if isinstance(m, (int, float)) else 0.5 * (m[0] + m[1]) for m in model_K]
+    return min(range(len(model_K)), key=lambda j: abs(centres[j] - K))
 
 
 def _summary(result: dict) -> dict:
@@ -218,7 +232,8 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
     """Generalisation across K of a bank of models (and optionally one model), the paper's fig. 6.
 
     Rules: ``nearest`` acts at each K with the model trained at the nearest K (an oracle
-    that knows K); ``max_q`` acts with ``MaxQBank`` (no knowledge of K); ``single`` is the
+    that knows K; a model fine-tuned over a K range serves the K inside it, see
+    ``nearest_model``); ``max_q`` acts with ``MaxQBank`` (no knowledge of K); ``single`` is the
     one model ``single`` at every K. Writes eval.json with the success rate per K of each
     rule and ``generalisation.png``.
     """
@@ -238,7 +253,7 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
         cfg["env"], stage_cfg, eval_cfg, seed))
     nearest_by_K: dict[str, dict] = {}
     for m, state in enumerate(states):
-        mine = [K for K in Ks if min(range(len(model_K)), key=lambda j: abs(model_K[j] - K)) == m]
+        mine = [K for K in Ks if nearest_model(model_K, K) == m]
         if mine:
             res = evaluate_policy(lambda env, s=state: load_agent(s, env.action_spec_unbatched), cfg["env"], stage_cfg,
                                   {**dict(eval_cfg), "K": mine}, seed)
@@ -251,7 +266,7 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
         state = load_checkpoint(single)
         rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
-    result = {"bank": [s["path"] for s in states], "bank_K": model_K, "single": single, "K": Ks,
+    result = {"bank": [s["path"] for s in states], "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
               "stage": stage_cfg.get("name"), "rules": rules,
               # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
               "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)

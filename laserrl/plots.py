@@ -59,7 +59,10 @@ def plot_generalisation(result: dict, path: str | Path) -> Path:
         Ks = [float(k) for k in rule["by_K"]]
         ax.plot(Ks, [v["success_rate"] for v in rule["by_K"].values()], "o-", ms=4, label=RULE_LABELS[name])
     for K in result.get("bank_K", []):
-        ax.axvline(K, color="0.8", lw=0.8, zorder=0)
+        if isinstance(K, (list, tuple)):  # a model fine-tuned over a K range
+            ax.axvspan(K[0], K[1], color="0.9", zorder=0)
+        else:
+            ax.axvline(K, color="0.8", lw=0.8, zorder=0)
     ax.set(xlabel="birefringence K", ylabel="success rate", ylim=(-0.05, 1.05),
            title="generalisation across K (grey: K of the bank's models)")
     ax.legend(fontsize=8)

@@ -279,7 +279,7 @@ def _K_bank(ctx) -> Claim:
         if name in g["rules"]:
             Ks, ok = _rule(ctx, name)
             parts.append(f"{label}: K in {_Ks(Ks, ok)} ({sum(ok)} / {len(ok)})")
-    models = ", ".join(f"{k:g}" for k in g.get("bank_K", []))
+    models = ", ".join(f"[{k[0]:g}, {k[1]:g}]" if isinstance(k, list) else f"{k:g}" for k in g.get("bank_K", []))
     failed = []
     if "nearest" in g["rules"]:
         Ks, ok = _rule(ctx, "nearest")
