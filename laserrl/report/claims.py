@@ -288,8 +288,9 @@ def _K_bank(ctx) -> Claim:
                  "(4 models, K = -0.2, 0, 0.2, 0.4)", "; ".join(parts) + f" (models at K = {models})",
                  ["generalisation"],
                  "The paper does not say how the bank picks its model. "
-                 + (f"The nearest-K rule fails at K = {', '.join(f'{K:g}' for K in failed)}: between the models' K, "
-                    "where the far locks are weaker or two models are equally near (docs/experiments.md). "
+                 + (f"The nearest-K rule fails at K = {', '.join(f'{K:g}' for K in failed)}, between the models' K: "
+                    "the model stops where the locks were at its own K, or stays on a nearby pulse just below the "
+                    "success threshold (docs/experiments.md). A model given as a K range serves the K inside it. "
                     if failed else "")
                  + "Highest-Q picks badly because the models' Q-values are not calibrated against each other.")
 
