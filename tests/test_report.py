@@ -126,3 +126,23 @@ def test_grids_and_overrides():
     assert widen(torch.tensor([0.0, 2.0, 4.0]), -3.0, 4.5).tolist() == [-4.0, -2.0, 0.0, 2.0, 4.0, 6.0]
     assert as_overrides({"stage": "duo", "train": {"total_frames": 64}}, {"train": {"total_frames": 8}, "x": None}) == \
         ["stage=duo", "train.total_frames=8", "x=null"]
+
+
+def test_a_bank_model_fine_tuned_again_over_a_K_range_counts_every_fine_tuning(tmp_path):
+    from laserrl.checkpoint import FORMAT
+    from laserrl.report.claims import _K_text, _finetune_episodes
+
+    def save(name, frames, max_steps, K, init_from):
+        path = tmp_path / f"{name}.pt"
+        torch.save({"format": FORMAT, "qnet": {}, "num_actions": 3, "frames": frames,
+                    "config": {"stage": {"K": K, "max_steps": max_steps}, "init_from": init_from}}, path)
+        return str(path)
+
+    base = save("base", 40960, 20, 0.1, None)  # trained from scratch: not counted
+    point = save("point", 6400, 40, 0.4, base)  # 160 episodes
+    ranged = save("ranged", 1280, 40, [0.3, 0.4], point)  # 32 more
+    assert _finetune_episodes(torch.load(ranged, weights_only=False)) == 192
+    assert _finetune_episodes(torch.load(point, weights_only=False)) == 160
+    Path(point).unlink()  # a parent that is gone ends the chain
+    assert _finetune_episodes(torch.load(ranged, weights_only=False)) == 32
+    assert _K_text([0.3, 0.4]) == "[0.3, 0.4]" and _K_text(-0.2) == "-0.2"

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Callable
 
 from laserrl.analysis.landscape import interval_width, intervals
-from laserrl.checkpoint import load_checkpoint
+from laserrl.checkpoint import CheckpointError, load_checkpoint
 
 REQUIRED = ("r_modelocked", "r_planewave", "alpha1_starts", "alpha1_lock_range", "hysteresis", "hysteresis_width",
             "episodes_train", "episodes_finetune", "K_single", "K_bank")
@@ -232,11 +232,10 @@ def _episodes_finetune(ctx) -> Claim:
         if cfg.get("init_from"):
             run = Path(path).parent.parent if Path(path).parent.name == "checkpoints" else Path(path)
             ev = json.loads((run / "eval.json").read_text()) if (run / "eval.json").exists() else {}
-            bank.append((float(cfg["stage"]["K"]), int(state["frames"]) / int(cfg["stage"]["max_steps"]),
-                         ev.get("success_rate")))
+            bank.append((_K_text(cfg["stage"]["K"]), _finetune_episodes(state), ev.get("success_rate")))
     if bank:
         parts.append("bank models fine-tuned for " + "; ".join(
-            f"K = {K:g}: {e:.0f} episodes" + (f" (success {s:.2f})" if s is not None else "") for K, e, s in bank))
+            f"K = {K}: {e:.0f} episodes" + (f" (success {s:.2f})" if s is not None else "") for K, e, s in bank))
         sources.append("bank")
     return Claim("episodes_finetune", "Episodes to fine-tune the K = 0.1 agent to another K (transfer learning)",
                  "~300 on average", "; ".join(parts) or "n/a (no transfer.json: report.results.transfer)", sources,
@@ -279,7 +278,7 @@ def _K_bank(ctx) -> Claim:
         if name in g["rules"]:
             Ks, ok = _rule(ctx, name)
             parts.append(f"{label}: K in {_Ks(Ks, ok)} ({sum(ok)} / {len(ok)})")
-    models = ", ".join(f"[{k[0]:g}, {k[1]:g}]" if isinstance(k, list) else f"{k:g}" for k in g.get("bank_K", []))
+    models = ", ".join(_K_text(k) for k in g.get("bank_K", []))
     failed = []
     if "nearest" in g["rules"]:
         Ks, ok = _rule(ctx, "nearest")
@@ -293,6 +292,27 @@ def _K_bank(ctx) -> Claim:
                     "success threshold (docs/experiments.md). A model given as a K range serves the K inside it. "
                     if failed else "")
                  + "Highest-Q picks badly because the models' Q-values are not calibrated against each other.")
+
+
+def _K_text(K) -> str:
+    """A stage's K: one value, or a [lo, hi] range sampled at reset."""
+    return f"[{K[0]:g}, {K[1]:g}]" if isinstance(K, (list, tuple)) else f"{float(K):g}"
+
+
+def _finetune_episodes(state: dict, depth: int = 8) -> float:
+    """Episodes of a fine-tuned model since the model it started from was trained from scratch:
+    its own, plus those of the checkpoints it was fine-tuned from (a model fine-tuned again,
+    e.g. over a K range, counts both). A parent checkpoint that is gone ends the chain."""
+    episodes = int(state["frames"]) / int(state["config"]["stage"]["max_steps"])
+    parent = state["config"].get("init_from")
+    if parent and depth > 0:
+        try:
+            parent_state = load_checkpoint(parent)
+        except CheckpointError:
+            return episodes
+        if parent_state["config"].get("init_from"):
+            episodes += _finetune_episodes(parent_state, depth - 1)
+    return episodes
 
 
 def _generalisation_command(ctx) -> str:
