@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---:|---:|---:|---:|---:|---:|")
     for name, batch, rate, ratio, bound, acc, first in rows:
         fmt = lambda x, f: "-" if (isinstance(x, float) and math.isnan(x)) else format(x, f)  # noqa: E731
-        print(f"| {name} | {batch} | {rate:,.0f} | {fmt(ratio, ',.0f')} | {fmt(bound, ',.0f')} | {fmt(acc, '.1e')} | {fmt(first, '.1f')} |")
+        print(f"| {name} | {batch} | {rate:,.0f} | {fmt(ratio, ',.0f' if ratio >= 10 else '.2g')} | {fmt(bound, ',.0f')} | {fmt(acc, '.1e')} | {fmt(first, '.1f')} |")
     best = max((r for r in rows if r[0].startswith("torch batch")), key=lambda r: r[2])
     print()
     print(f"best: {best[2]:,.0f} cavity round trips/s at batch {best[1]} = {best[3]:,.0f}x the scipy reference "
