@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 import numbers
 import re
 from typing import Any, Mapping
@@ -10,7 +9,7 @@ from typing import Any, Mapping
 import torch
 from torchrl.envs import TransformedEnv
 
-from laserrl.envs.laser_env import LaserCavityEnv, LaserTask
+from laserrl.envs.laser_env import LaserCavityEnv, LaserTask, finite_number
 from laserrl.envs.transforms import centred_reward
 from laserrl.physics import CavityParams
 
@@ -55,10 +54,8 @@ def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs:
     env = LaserCavityEnv(num_envs, task=make_task(env_cfg, stage_cfg, **task_overrides), params=make_params(env_cfg),
                          device=device, seed=seed)
     if centred:
-        center, scale = env_cfg["reward_center"], env_cfg["reward_scale"]
-        for name, value in (("reward_center", center), ("reward_scale", scale)):
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-                raise ValueError(f"env.{name} must be a finite number, got {value!r}")
+        center = finite_number(env_cfg["reward_center"], "env.reward_center")
+        scale = finite_number(env_cfg["reward_scale"], "env.reward_scale")
         if not scale > 0:
             raise ValueError(f"env.reward_scale must be > 0, got {scale!r}")
         env = TransformedEnv(env, centred_reward(center, scale))

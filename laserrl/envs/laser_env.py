@@ -33,8 +33,8 @@ _DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
 MAX_INIT_AMPLITUDE = 10.0
 
 
-def _number(value, name: str) -> float:
-    """A finite real number (not a bool, string or list), as float."""
+def finite_number(value, name: str) -> float:
+    """A finite real number (not a bool, string or list), as float; otherwise a ValueError naming ``name``."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     return float(value)
@@ -43,9 +43,9 @@ def _number(value, name: str) -> float:
 def _range(value, name: str) -> tuple[float, float]:
     """A fixed value or a [lo, hi] range, as (lo, hi)."""
     if isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2:
-        lo, hi = (_number(x, name) for x in value)
+        lo, hi = (finite_number(x, name) for x in value)
     elif isinstance(value, numbers.Real) and not isinstance(value, bool):
-        lo = hi = _number(value, name)
+        lo = hi = finite_number(value, name)
     else:
         raise ValueError(f"{name} must be a number or a [low, high] pair, got {value!r}")
     if lo > hi:
@@ -87,7 +87,7 @@ class LaserTask:
 
     def __post_init__(self):
         self.controlled = _sequence(self.controlled, "controlled")
-        self.steps_deg = tuple(_number(s, "steps_deg") for s in _sequence(self.steps_deg, "steps_deg"))
+        self.steps_deg = tuple(finite_number(s, "steps_deg") for s in _sequence(self.steps_deg, "steps_deg"))
         if not all(isinstance(name, str) for name in self.controlled):
             raise ValueError(f"controlled must name angles of {ANGLE_NAMES}, got {self.controlled!r}")
         if not self.controlled or len(set(self.controlled)) != len(self.controlled):
@@ -115,7 +115,7 @@ class LaserTask:
             raise ValueError(f"init_fields must be 'sech' or 'noise', got {self.init_fields!r}")
         for name, largest in (("sech_amplitude", MAX_INIT_AMPLITUDE), ("sech_width", math.inf),
                               ("noise_scale", MAX_INIT_AMPLITUDE)):
-            value = _number(getattr(self, name), name)
+            value = finite_number(getattr(self, name), name)
             if not 0 < value <= largest:
                 raise ValueError(f"{name} must be > 0{f' and <= {largest:g}' if largest < math.inf else ''}, got {value!r}")
         for name in ("max_round_trips", "max_steps"):
@@ -127,7 +127,7 @@ class LaserTask:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         if self.tol is None:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
-        if _number(self.tol, "tol") < 0:
+        if finite_number(self.tol, "tol") < 0:
             raise ValueError(f"tol must be >= 0, got {self.tol!r}")
 
     @property
