@@ -78,21 +78,24 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0):
                      threads=cfg.collector.worker_threads if multi else None)
     common = dict(frames_per_batch=cfg.collector.frames_per_batch, total_frames=cfg.train.total_frames - frames_done,
                   init_random_frames=max(0, cfg.replay.init_random_frames - frames_done), device=cfg.device)
+    # The Q-network is feed-forward: it needs no InitTracker or primers, so the collectors
+    # must leave the env as it is (torchrl 0.14 warns, and 0.15 would append an InitTracker)
+    no_policy_transforms = dict(auto_register_policy_transforms=False)
     if not multi:
-        return Collector(env_fn, policy, **common)
+        return Collector(env_fn, policy, **common, **no_policy_transforms)
     if cfg.collector.kind == "ray":
         from torchrl.collectors.distributed import RayCollector
 
         # one Collector per Ray actor, each stepping its own batch of env.num_envs cavities
         return RayCollector([env_fn] * int(cfg.collector.num_workers), policy, sync=bool(cfg.collector.sync),
-                            collector_class=Collector,
+                            collector_class=Collector, collector_kwargs=no_policy_transforms,
                             ray_init_config={"address": cfg.collector.ray_address,
                                              "num_cpus": cfg.collector.ray_num_cpus, "ignore_reinit_error": True},
                             remote_configs={"num_cpus": cfg.collector.cpus_per_worker,
                                             "memory": int(cfg.collector.memory_gb_per_worker * 1024**3)},
                             **common)
     cls = MultiSyncCollector if cfg.collector.kind == "multi_sync" else MultiAsyncCollector
-    return cls([env_fn] * int(cfg.collector.num_workers), policy, **common)
+    return cls([env_fn] * int(cfg.collector.num_workers), policy, **common, **no_policy_transforms)
 
 
 def periodic_eval(cfg: DictConfig, actor) -> float:

@@ -37,6 +37,13 @@ def test_train_writes_checkpoint_eval_and_prints_path(trained):
     assert all(len(p["angle_path_deg"]) == 3 for p in result["per_start"])
 
 
+def test_collector_does_not_ask_for_recurrent_policy_transforms(trained):
+    # the Q-network is feed-forward; torchrl 0.14 warns (and 0.15 would append an
+    # InitTracker to the env) unless the collector is told to leave the env alone
+    _, res = trained
+    assert "missing transforms required by the policy" not in res.stderr
+
+
 def test_eval_entry_point_on_a_checkpoint_at_another_K(trained, tmp_path):
     out, _ = trained
     res = run("laserrl-eval", f"checkpoint={out}", "eval.K=0.2", "eval.steps=2", "eval.starts_deg=[-30]",
