@@ -18,7 +18,7 @@ def positive(obj, *names) -> None:
 
 def integer(obj, name, low) -> None:
     v = getattr(obj, name)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v or v < low:
+    if not is_finite_number(v) or int(v) != v or v < low:  # finite first: int() of inf or NaN raises its own error
         raise ValueError(f"{name} must be an integer >= {low}, got {v!r}")
 
 

@@ -19,7 +19,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from laserrl.control.checks import is_finite_number
+from laserrl.control.checks import integer, is_finite_number
 from laserrl.control.esc import ESCParams, ExtremumSeeking
 from laserrl.envs.actions import action_to_deltas
 from laserrl.envs.laser_env import ANGLE_NAMES
@@ -67,9 +67,7 @@ class HybridRule:
             if not is_finite_number(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         for name in ("lock_steps", "unlock_steps"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or int(v) != v or v < 1:
-                raise ValueError(f"{name} must be a positive integer, got {v!r}")
+            integer(self, name, 1)
         if self.unlock_r > self.lock_r:
             raise ValueError(f"unlock_r ({self.unlock_r}) must be <= lock_r ({self.lock_r}), or the modes would chatter")
 

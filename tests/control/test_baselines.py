@@ -48,7 +48,7 @@ def test_hill_climb_follows_a_drifting_optimum():
     (RandomSearchParams, {"range_deg": [10.0, -10.0]}, "range_deg"),
     (HillClimbParams, {"step_deg": 8.0, "max_step_deg": 4.0}, "max_step_deg"), (HillClimbParams, {"shrink": 1.5}, "shrink"),
     (GeneticParams, {"elite": 8, "population": 8}, "elite"), (GeneticParams, {"population": 1}, "population"),
-    (GeneticParams, {"mutation_prob": -0.1}, "mutation_prob"),
+    (GeneticParams, {"mutation_prob": -0.1}, "mutation_prob"), (GeneticParams, {"population": float("inf")}, "population"),
 ])
 def test_bad_settings_name_the_setting(cls, bad, match):
     with pytest.raises(ValueError, match=match):

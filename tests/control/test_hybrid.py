@@ -60,7 +60,8 @@ def test_esc_restarts_from_the_current_angles_on_engagement():
 
 
 @pytest.mark.parametrize("bad, match", [({"unlock_r": 0.2, "lock_r": 0.15}, "unlock_r"), ({"lock_steps": 0}, "lock_steps"),
-                                        ({"unlock_steps": 1.5}, "unlock_steps"), ({"lock_r": float("nan")}, "lock_r")])
+                                        ({"unlock_steps": 1.5}, "unlock_steps"), ({"lock_r": float("nan")}, "lock_r"),
+                                        ({"lock_steps": float("inf")}, "lock_steps"), ({"unlock_steps": "3"}, "unlock_steps")])
 def test_bad_rule_names_the_value(bad, match):
     with pytest.raises(ValueError, match=match):
         HybridRule(**bad)
