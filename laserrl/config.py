@@ -42,10 +42,12 @@ def _number(cfg: DictConfig, dotted: str, *, low=None, high=None, integer=False,
 
 def _check_number(value, dotted: str, *, low=None, high=None, integer=False, low_open=False):
     kind = "an integer" if integer else "a number"
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or (integer and int(value) != value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{dotted} must be {kind}, got {value!r}")
-    if isinstance(value, float) and not math.isfinite(value):
+    if isinstance(value, float) and not math.isfinite(value):  # before int(), which raises its own error on inf, NaN
         raise ConfigError(f"{dotted} must be finite, got {value!r}")
+    if integer and int(value) != value:
+        raise ConfigError(f"{dotted} must be {kind}, got {value!r}")
     if low is not None and (value <= low if low_open else value < low):
         raise ConfigError(f"{dotted} must be {'>' if low_open else '>='} {low}, got {value!r}")
     if high is not None and value > high:

@@ -68,6 +68,9 @@ def _compose(overrides):
     # wrong types
     ("env.num_envs=many", "env.num_envs"), ("stage.K=[0.1,high]", "stage.K"), ("stage.steps_deg=2", "stage.steps_deg"),
     ("stage.max_steps=2.5", "stage.max_steps"),
+    # integers that are not finite
+    ("train.total_frames=inf", "train.total_frames"), ("collector.frames_per_batch=nan", "collector.frames_per_batch"),
+    ("env.num_envs=inf", "env.num_envs"),
 ])
 def test_hostile_value_names_its_key(override, key):
     cfg = _compose([override])

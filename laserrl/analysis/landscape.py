@@ -21,6 +21,7 @@ All rows of a grid and both sweep directions run as one batch of cavities.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -56,7 +57,8 @@ class StepSettings:
     def __post_init__(self):
         for name in ("max_round_trips", "min_round_trips", "settle_round_trips"):
             value = getattr(self, name)
-            if isinstance(value, bool) or int(value) != value or value < 1:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if self.min_round_trips > self.max_round_trips:
             raise ValueError(f"min_round_trips ({self.min_round_trips}) must be <= max_round_trips ({self.max_round_trips})")

@@ -85,6 +85,8 @@ def test_settings_from_the_env_task_and_bad_input():
     assert (s.max_round_trips, s.tol, s.dtype) == (30, 1e-5, torch.complex64)
     with pytest.raises(ValueError, match="min_round_trips"):
         StepSettings(max_round_trips=1, min_round_trips=2)
+    with pytest.raises(ValueError, match="max_round_trips"):
+        StepSettings(max_round_trips=float("inf"))
     with pytest.raises(ValueError, match="strictly increasing"):
         sweep("alpha1", [0.0, 0.0], BASE, 0.1, PARAMS, SETTINGS)
     with pytest.raises(ValueError, match="angle must be one of"):
