@@ -99,6 +99,7 @@ def check_train_config(cfg: DictConfig) -> None:
     _number(cfg, "optim.max_grad_norm", low=0, low_open=True)
     _number(cfg, "optim.weight_decay", low=0)
     _number(cfg, "agent.gamma", low=0, high=1)
+    _number(cfg, "agent.n_steps", low=1, integer=True, optional=True)
     _one_of(cfg, "agent.loss_function", ("l1", "l2", "smooth_l1"))
     _one_of(cfg, "agent.target.kind", ("soft", "hard"))
     _number(cfg, "agent.target.tau", low=0, high=1, low_open=True)
@@ -135,6 +136,12 @@ def check_train_config(cfg: DictConfig) -> None:
             raise ConfigError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must split over "
                               f"collector.num_workers ({cfg.collector.num_workers}) into multiples of env.num_envs "
                               f"({cfg.env.num_envs})")
+    if (cfg.agent.get("n_steps") or 1) > 1 and (cfg.collector.kind == "multi_async"
+                                                 or (cfg.collector.kind == "ray" and not cfg.collector.sync)):
+        # n-step returns join each batch to the previous one, which needs the same envs in the same order
+        raise ConfigError(f"agent.n_steps={cfg.agent.n_steps} needs batches from every env in turn: use "
+                          f"collector=sync, multi_sync or ray with collector.sync=true, not {cfg.collector.kind}"
+                          + (" with sync=false" if cfg.collector.kind == "ray" else ""))
     if cfg.logger.backend not in ("wandb", "csv", "tensorboard", "none"):
         raise ConfigError(f"logger.backend must be wandb, csv, tensorboard or none, got {cfg.logger.backend!r}")
     if cfg.logger.backend == "wandb" and cfg.logger.mode not in ("offline", "online", "disabled"):

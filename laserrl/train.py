@@ -24,8 +24,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_qnet,
-                                make_replay, make_target_updater)
+from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_n_step,
+                                make_qnet, make_replay, make_target_updater)
 from laserrl.checkpoint import save_json
 from laserrl.config import check_train_config, log_config, make_logger, user_errors
 from laserrl.envs.factory import make_env
@@ -139,6 +139,8 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         target.init_()  # the target network starts from the warm-started weights
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
+    # n-step returns: batches become n-step transitions before they are stored (None: one-step TD)
+    n_step = make_n_step(int(cfg.agent.get("n_steps", 1)), float(cfg.agent.gamma))
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
     run = RunCounters(next_eval=cfg.train.get("eval_every_frames") or math.inf)
@@ -207,9 +209,11 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 between_batches = False
                 t_batch = time.perf_counter()
                 run.frames += data.numel()
-                replay.extend(data.reshape(-1))
+                transitions = data if n_step is None else n_step.inv(data)
+                if transitions is not None:  # (the first n steps of an n-step run wait for their returns)
+                    replay.extend(transitions.reshape(-1))
                 egreedy.eps.fill_(schedule(run.frames))
-                if run.frames >= cfg.replay.init_random_frames:
+                if run.frames >= cfg.replay.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
                     n_updates = max(1, int(round(data.numel() * cfg.optim.updates_per_frame)))
                     for _ in range(n_updates):
                         sample = replay.sample()

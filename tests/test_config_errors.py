@@ -55,6 +55,7 @@ def _compose(overrides):
     ("stage.K=[0,-inf]", "stage.K"), ("stage.init_angles_deg.alpha_p=nan", "stage.init_angles_deg.alpha_p"),
     ("eval.K=[0.1,nan]", "eval.K"), ("eval.success_r=inf", "eval.success_r"),
     ("optim.lr=nan", "optim.lr"), ("optim.lr=-1e-3", "optim.lr"), ("agent.gamma=1.5", "agent.gamma"),
+    ("agent.n_steps=0", "agent.n_steps"), ("agent.n_steps=2.5", "agent.n_steps"),
     ("agent.exploration.end=1.5", "agent.exploration.end"),  # end <= start <= 1
     ("agent.exploration.decay_frames=0", "agent.exploration.decay_frames"),
     ("agent.target.tau=0", "agent.target.tau"), ("env.tol=-1e-5", "env.tol"),
@@ -79,6 +80,15 @@ def test_hostile_value_names_its_key(override, key):
     message = str(info.value)
     assert message.startswith(key) or message.startswith(f"{key}[") or f"{key} " in message or f"{key}:" in message, message
     assert "\n" not in message
+
+
+@pytest.mark.parametrize("collector", [["collector=multi_sync", "collector.kind=multi_async"], ["collector=ray", "collector.sync=false"]])
+def test_n_step_returns_refuse_collectors_that_interleave_envs(collector):
+    # n-step returns join a batch to the one before, so every batch must come from the same envs
+    cfg = _compose(["agent.n_steps=3", *collector])
+    with pytest.raises(ValueError, match=r"^agent.n_steps=3 needs batches from every env in turn"):
+        check_train_config(cfg)
+    check_train_config(_compose(["agent.n_steps=3", "collector=multi_sync"]))
 
 
 @pytest.mark.parametrize("override, group", [("stage=nosuch", "stage"), ("env=nosuch", "env")])

@@ -92,7 +92,8 @@ def test_unknown_key_and_wrong_type(tmp_path):
     assert not (tmp_path / "checkpoints").exists()
 
 
-@pytest.mark.parametrize("extra", [["collector=multi_sync", "collector.num_workers=2", "collector.frames_per_batch=16", "env.num_envs=8"],
+@pytest.mark.parametrize("extra", [["collector=multi_sync", "collector.num_workers=2", "collector.frames_per_batch=16", "env.num_envs=8",
+                                    "agent.n_steps=2"],
                                    ["logger.backend=csv"], ["logger.backend=tensorboard"],
                                    ["logger.backend=wandb", "replay=uniform", "agent.target.kind=hard", "agent.exploration.kind=linear"]])
 def test_train_variants_run_and_log(tmp_path, extra):
@@ -103,6 +104,8 @@ def test_train_variants_run_and_log(tmp_path, extra):
         scalars = tmp_path / "logs"
         names = {p.relative_to(next(scalars.iterdir()) / "scalars").as_posix() for p in scalars.rglob("*.csv")}
         assert {"train/r_mean.csv", "train/epsilon.csv", "eval/mean_final_reward.csv"} <= names
+    if "agent.n_steps=2" in extra:  # n-step transitions (with their step counts) reached the replay buffer
+        assert list((tmp_path / "checkpoints").rglob("steps_to_next_obs.memmap"))
     if "logger.backend=tensorboard" in extra:
         assert list((tmp_path / "logs").rglob("events.out.tfevents*"))
     if "logger.backend=wandb" in extra:

@@ -2,8 +2,9 @@
 
 Everything here is TorchRL's own: ``QValueActor``, ``EGreedyModule``, ``DQNLoss``
 (double DQN, delayed target), ``SoftUpdate``/``HardUpdate``, and the (prioritized)
-replay buffers. The only thing added is the exponential epsilon decay the paper
-uses, which sets ``EGreedyModule.eps`` from the frame count.
+replay buffers, and ``MultiStepTransform`` for n-step returns. The only thing added is
+the exponential epsilon decay the paper uses, which sets ``EGreedyModule.eps`` from the
+frame count.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
+from torchrl.envs.transforms import MultiStepTransform
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
@@ -98,3 +100,19 @@ def make_replay(kind: str, size: int, batch_size: int, alpha: float = 0.6, beta:
     if kind == "uniform":
         return TensorDictReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=batch_size)
     raise ValueError(f"replay.kind must be 'prioritized' or 'uniform', got {kind!r}")
+
+
+def make_n_step(n_steps: int, gamma: float) -> MultiStepTransform | None:
+    """n-step returns, or None for the paper's one-step TD target (``n_steps`` = 1).
+
+    TorchRL's ``MultiStepTransform``: ``transform.inv(batch)`` turns a collector batch of
+    shape (..., time) into transitions whose reward is sum_{k<m} gamma^k r_{t+k} and whose
+    next observation is the one m = min(n, steps to the episode's end) steps later, with
+    ``steps_to_next_obs`` = m, from which ``DQNLoss`` discounts the bootstrap by gamma^m.
+    It keeps the last ``n_steps`` steps of the previous batch, so each transition is
+    stored once its n steps have been collected (None until then). The laser env's
+    episodes only end by truncation, for which bootstrapping from the last state is right.
+    """
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"agent.n_steps must be an integer >= 1, got {n_steps!r}")
+    return MultiStepTransform(n_steps, gamma) if n_steps > 1 else None

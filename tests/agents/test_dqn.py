@@ -4,7 +4,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from laserrl.agents.dqn import EpsilonSchedule, make_actor, make_loss, make_qnet, make_replay, make_target_updater
+from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_loss, make_n_step, make_qnet, make_replay,
+                                make_target_updater)
 from laserrl.envs import LaserCavityEnv
 
 
@@ -78,3 +79,60 @@ def test_prioritized_replay_updates_priorities_from_td_error():
     assert boosted > 5 * others
     with pytest.raises(ValueError, match="replay.kind"):
         make_replay("fifo", 10, 2)
+
+
+def _n_step_rollout(n_steps, gamma, batches=5, T=2):
+    """A real rollout (4 cavities, 3-step episodes, auto-reset) fed to make_n_step in
+    collector-sized batches of T steps; returns the rollout and the transitions it stored."""
+    env = LaserCavityEnv(4, max_round_trips=2, max_steps=3, seed=0)
+    torch.manual_seed(0)
+    rollout = env.rollout(batches * T, break_when_any_done=False)  # (4, batches * T), time last
+    transform = make_n_step(n_steps, gamma)
+    stored = [transform.inv(rollout[:, i * T:(i + 1) * T]) for i in range(batches)]
+    return rollout, torch.cat([s for s in stored if s is not None], -1)
+
+
+@pytest.mark.parametrize("n_steps", [2, 3])
+def test_n_step_transitions_sum_discounted_rewards_up_to_the_episode_end(n_steps):
+    gamma = 0.9
+    rollout, stored = _n_step_rollout(n_steps, gamma)
+    reward = rollout["next", "reward"][..., 0]
+    done = rollout["next", "done"][..., 0]
+    steps = stored.shape[-1]
+    assert steps == rollout.shape[-1] - n_steps  # the last n steps wait for the next batch
+    for env in range(rollout.shape[0]):
+        for t in range(steps):
+            m = 1
+            while m < n_steps and not bool(done[env, t + m - 1]):  # stop at the episode's last step
+                m += 1
+            want = sum(gamma**k * float(reward[env, t + k]) for k in range(m))
+            assert float(stored["next", "reward"][env, t]) == pytest.approx(want, rel=1e-5)
+            assert int(stored["steps_to_next_obs"][env, t]) == m
+            assert torch.equal(stored["next", "fields"][env, t], rollout["next", "fields"][env, t + m - 1])
+            assert torch.equal(stored["fields"][env, t], rollout["fields"][env, t])
+
+
+def test_dqn_target_discounts_n_step_bootstrap_by_gamma_to_the_steps(parts):
+    env, qnet, actor = parts
+    gamma = 0.9
+    loss = make_loss(actor, env.action_spec_unbatched, gamma=gamma)
+    make_target_updater(loss, "hard", interval=1).init_()
+    _, stored = _n_step_rollout(3, gamma)
+    sample = stored.reshape(-1)
+    target = loss.value_estimator.value_estimate(sample.clone(), target_params=loss.target_value_network_params)
+    with torch.no_grad(), loss.target_value_network_params.to_module(loss.value_network):
+        next_q = loss.value_network(sample["next"].clone())["action_value"]
+    with torch.no_grad():  # double DQN: the online network picks the action, the target one values it
+        online_best = actor(sample["next"].clone())["action_value"].argmax(-1, keepdim=True)
+    boot = next_q.gather(-1, online_best)
+    m = sample["steps_to_next_obs"].float().view_as(boot)
+    want = sample["next", "reward"].view_as(boot) + gamma**m * boot  # the env never terminates
+    assert bool((m > 1).any())
+    torch.testing.assert_close(target.view_as(want), want, rtol=1e-5, atol=1e-5)
+
+
+def test_n_steps_must_be_a_positive_integer():
+    assert make_n_step(1, 0.9) is None  # the paper's one-step target: no transform
+    for bad in (0, -2, 2.5, True, "3"):
+        with pytest.raises(ValueError, match="agent.n_steps"):
+            make_n_step(bad, 0.9)

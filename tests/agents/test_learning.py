@@ -6,6 +6,7 @@ where the laser is mode-locked but r rises towards alpha1 ~ -24 deg: the agent h
 learn to turn alpha1 the right way and stop there; a random walk stays near its start."""
 from pathlib import Path
 
+import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -19,8 +20,9 @@ CONF = Path(__file__).resolve().parents[2] / "conf"
 STARTS = [-40.0, -38.0, -36.0, -34.0]
 
 
-def test_greedy_policy_beats_random_policy(tmp_path):
-    overrides = [
+@pytest.mark.parametrize("n_steps", [1, 3])  # one-step TD (paper) and n-step returns
+def test_greedy_policy_beats_random_policy(tmp_path, n_steps):
+    overrides = [f"agent.n_steps={n_steps}",
         f"run_dir={tmp_path}", "seed=0", "logger=none", "env.compile=false", "env.num_envs=16",
         "env.max_round_trips=5", "stage.init_angles_deg.alpha1=[-40,-34]", "stage.max_steps=8",
         "train.total_frames=2048", "train.progress=false", "train.plots=false",
