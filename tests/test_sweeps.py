@@ -23,10 +23,10 @@ def _compose(overrides, hydra=False):
 
 
 def _sample(spec: str):
-    """A value inside a Hydra sweep expression such as tag(log, interval(1e-4, 3e-3)) or range(0, 5)."""
+    """A value inside a Hydra sweep expression such as tag(log, interval(1e-4, 3e-3)), range(0, 5) or choice(1, 3)."""
     inner = spec[spec.rindex("(") + 1: spec.index(")")]
     low = float(inner.split(",")[0])
-    return int(low) if spec.startswith(("int(", "range(")) else low
+    return int(low) if spec.startswith(("int(", "range(")) or (spec.startswith("choice(") and low.is_integer()) else low
 
 
 def test_conf_sweep_is_the_sweeps_folder():
@@ -55,7 +55,8 @@ def test_wandb_sweeps_drive_the_hydra_app(path):
     spec = yaml.safe_load(path.read_text())
     assert "${args_no_hyphens}" in spec["command"] and spec["program"] == "laserrl-train"
     assert spec["metric"]["name"] in ("eval/mean_final_reward", "eval/success_rate")
-    values = [f"{key}={p.get('min', p.get('value'))}" for key, p in spec["parameters"].items()]
+    values = [f"{key}={p['values'][-1] if 'values' in p else p.get('min', p.get('value'))}"
+              for key, p in spec["parameters"].items()]
     check_train_config(_compose(values))
 
 
@@ -71,7 +72,7 @@ def test_optuna_sweep_runs_locally(tmp_path):
     _multirun(tmp_path, "sweep=optuna", "hydra.sweeper.n_trials=2")
     result = yaml.safe_load((tmp_path / "optimization_results.yaml").read_text())
     assert set(result["best_params"]) == {"optim.lr", "agent.gamma", "agent.exploration.decay_frames",
-                                          "agent.target.tau", "replay.alpha", "replay.beta"}
+                                          "agent.target.tau", "replay.alpha", "replay.beta", "agent.n_steps"}
     trials = sorted(p for p in tmp_path.iterdir() if p.is_dir() and p.name.isdigit())
     assert [p.name for p in trials] == ["0", "1"]
     # the best value is the largest metric that the trials' main returned
