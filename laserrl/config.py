@@ -124,6 +124,8 @@ def check_train_config(cfg: DictConfig) -> None:
     _number(cfg, "eval.success_r", optional=True)
     _number(cfg, "eval.hold_r", optional=True)
     _numbers(cfg, "eval.K", optional=True, scalar_ok=True)
+    if OmegaConf.select(cfg, "eval.init_fields") is not None:
+        _one_of(cfg, "eval.init_fields", ("sech", "noise"))
     _numbers(cfg, "eval.starts_deg", optional=True, scalar_ok=True)
     if cfg.collector.frames_per_batch % cfg.env.num_envs:
         raise ConfigError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must be a multiple of "

@@ -53,7 +53,7 @@ def _compose(overrides):
     ("stage.init_angles_deg.alpha1=[-10,-40]", "stage.init_angles_deg.alpha1"),
     ("stage.K=[0.4,0.1]", "stage.K"), ("stage.K=nan", "stage.K"), ("stage.K=inf", "stage.K"),
     ("stage.K=[0,-inf]", "stage.K"), ("stage.init_angles_deg.alpha_p=nan", "stage.init_angles_deg.alpha_p"),
-    ("eval.K=[0.1,nan]", "eval.K"), ("eval.success_r=inf", "eval.success_r"),
+    ("eval.K=[0.1,nan]", "eval.K"), ("eval.success_r=inf", "eval.success_r"), ("eval.init_fields=gauss", "eval.init_fields"),
     ("optim.lr=nan", "optim.lr"), ("optim.lr=-1e-3", "optim.lr"), ("agent.gamma=1.5", "agent.gamma"),
     ("agent.n_steps=0", "agent.n_steps"), ("agent.n_steps=2.5", "agent.n_steps"),
     ("agent.exploration.end=1.5", "agent.exploration.end"),  # end <= start <= 1

@@ -40,3 +40,26 @@ def test_a_bank_model_with_an_unusable_K_is_refused_by_path():
     assert _stage_K({"config": {"stage": {"K": [0.3, 0.1]}}}) == (0.1, 0.3)
     with pytest.raises(CheckpointError, match="m.pt has stage.K"):
         _stage_K({"path": "m.pt", "config": {"stage": {"K": "warm"}}})
+
+
+def _hold_policy(env):
+    from laserrl.envs.actions import hold_action
+
+    def act(td):
+        return td.set("action", torch.full(td.batch_size, hold_action(1), dtype=torch.int64))
+    return act
+
+
+@pytest.mark.parametrize("init_fields", ["sech", "noise"])
+def test_eval_init_fields_sets_the_initial_fields_of_the_protocol(init_fields):
+    from laserrl.evaluate import evaluate_policy
+
+    env_cfg = {"num_envs": 2, "max_round_trips": 3, "tol": None, "dtype": "complex64", "compile": False,
+               "reward_center": 0.1, "reward_scale": 0.1, "physics": {"n": 64, "z_steps": 2}}
+    stage_cfg = {"name": "siso", "controlled": ["alpha1"], "steps_deg": [2.0], "K": 0.1, "init_fields": "sech",
+                 "init_angles_deg": {"alpha1": [-40.0, -10.0], "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0},
+                 "max_steps": 3}
+    eval_cfg = {"steps": 2, "starts_deg": [-24.0], "success_r": 0.18, "repeats": 2, "init_fields": init_fields}
+    paths = [p["reward_path"] for p in evaluate_policy(_hold_policy, env_cfg, stage_cfg, eval_cfg)["per_start"]]
+    # the two copies of one start: identical from the sech fields, each with its own draw from noise
+    assert (paths[0] == paths[1]) == (init_fields == "sech"), paths
