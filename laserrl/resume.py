@@ -135,7 +135,8 @@ class RunSaver:
             self.replay.dumps(tmp)
             shutil.rmtree(self.dir / name, ignore_errors=True)  # an unreferenced leftover of a killed run
             os.replace(tmp, self.dir / name)
-        save_checkpoint({**state, "replay": name}, self.path)
+        # the transitions stored: with n-step returns fewer than the frames (the last n steps wait for their returns)
+        save_checkpoint({**state, "replay": name, "replay_size": len(self.replay) if name else 0}, self.path)
         self.replay_name, self.saved_frames = name, frames
         for old in self.dir.glob(f"{REPLAY_PREFIX}*"):
             if old.name != name:
@@ -174,9 +175,11 @@ def load_replay(replay, state: Mapping[str, Any]) -> None:
     except Exception as err:  # truncated memmaps or json fail in many ways inside torchrl
         raise CheckpointError(f"replay buffer {state['replay_dir']} is unreadable "
                               f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
-    if len(replay) != min(int(state["frames"]), int(replay.storage.max_size)):
+    # checkpoints from before replay_size was recorded stored one transition per frame
+    expected = int(state.get("replay_size", min(int(state["frames"]), int(replay.storage.max_size))))
+    if len(replay) != expected:
         raise CheckpointError(f"replay buffer {state['replay_dir']} holds {len(replay)} transitions; "
-                              f"its checkpoint expects {min(int(state['frames']), replay.storage.max_size)}")
+                              f"its checkpoint expects {expected}")
 
 
 # ----------------------------------------------------------------------------- the config of a resumed run

@@ -179,6 +179,23 @@ def _priorities(replay, n):
     return [tree[i] for i in range(n)]
 
 
+def test_an_n_step_run_resumes_with_the_transitions_it_stored(tmp_path):
+    run_dir = tmp_path / "run"
+    res = _run(run_dir, *TINY, "agent.n_steps=3", "train.total_frames=128")
+    assert res.returncode == 0, res.stderr[-3000:]
+    state = load_run(run_dir)
+    # one step per cavity and batch: the last 3 steps of each cavity still wait for their 3-step returns
+    assert state["frames"] == 128 and state["replay_size"] == 128 - 3 * BATCH
+    res = _run(tmp_path / "resume", f"resume={run_dir}", "train.total_frames=256")
+    assert res.returncode == 0, res.stderr[-3000:]
+    state = load_run(run_dir)
+    assert state["frames"] == 256 and 0 < state["replay_size"] < 256
+    loaded = make_replay("prioritized", 100_000, 8)  # conf/replay: the run's buffer size
+    load_replay(loaded, state)
+    assert len(loaded) == state["replay_size"]
+    assert loaded.storage[: len(loaded)]["steps_to_next_obs"].max() == 3
+
+
 def test_replay_buffer_comes_back_with_size_and_priorities(tmp_path):
     replay = _filled_replay()
     RunSaver(tmp_path, replay).save(_state(100))
