@@ -77,6 +77,11 @@ def _one_of(cfg: DictConfig, dotted: str, choices) -> None:
         raise ConfigError(f"{dotted} must be one of {', '.join(map(str, choices))}, got {value!r}")
 
 
+def agent_n_steps(cfg: DictConfig):
+    """``agent.n_steps``; 1 (one-step TD) for the saved config of a run from before the key existed."""
+    return cfg.agent.get("n_steps", 1)
+
+
 def check_train_config(cfg: DictConfig) -> None:
     """Range and type checks with messages that name the key, before anything is built or written."""
     _number(cfg, "seed", low=0, high=2**32 - 1, integer=True)  # numpy's seed range
@@ -99,7 +104,7 @@ def check_train_config(cfg: DictConfig) -> None:
     _number(cfg, "optim.max_grad_norm", low=0, low_open=True)
     _number(cfg, "optim.weight_decay", low=0)
     _number(cfg, "agent.gamma", low=0, high=1)
-    _number(cfg, "agent.n_steps", low=1, integer=True, optional=True)
+    _check_number(agent_n_steps(cfg), "agent.n_steps", low=1, integer=True)
     _one_of(cfg, "agent.loss_function", ("l1", "l2", "smooth_l1"))
     _one_of(cfg, "agent.target.kind", ("soft", "hard"))
     _number(cfg, "agent.target.tau", low=0, high=1, low_open=True)
@@ -138,8 +143,8 @@ def check_train_config(cfg: DictConfig) -> None:
             raise ConfigError(f"collector.frames_per_batch ({cfg.collector.frames_per_batch}) must split over "
                               f"collector.num_workers ({cfg.collector.num_workers}) into multiples of env.num_envs "
                               f"({cfg.env.num_envs})")
-    if (cfg.agent.get("n_steps") or 1) > 1 and (cfg.collector.kind == "multi_async"
-                                                 or (cfg.collector.kind == "ray" and not cfg.collector.sync)):
+    if agent_n_steps(cfg) > 1 and (cfg.collector.kind == "multi_async"
+                                   or (cfg.collector.kind == "ray" and not cfg.collector.sync)):
         # n-step returns join each batch to the previous one, which needs the same envs in the same order
         raise ConfigError(f"agent.n_steps={cfg.agent.n_steps} needs batches from every env in turn: use "
                           f"collector=sync, multi_sync or ray with collector.sync=true, not {cfg.collector.kind}"

@@ -27,7 +27,7 @@ from tqdm import tqdm
 from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_n_step,
                                 make_qnet, make_replay, make_target_updater)
 from laserrl.checkpoint import save_json
-from laserrl.config import check_train_config, log_config, make_logger, user_errors
+from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, user_errors
 from laserrl.envs.factory import make_env
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
@@ -140,7 +140,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
     # n-step returns: batches become n-step transitions before they are stored (None: one-step TD)
-    n_step = make_n_step(int(cfg.agent.get("n_steps", 1)), float(cfg.agent.gamma))
+    n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
     run = RunCounters(next_eval=cfg.train.get("eval_every_frames") or math.inf)

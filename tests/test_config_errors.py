@@ -55,7 +55,7 @@ def _compose(overrides):
     ("stage.K=[0,-inf]", "stage.K"), ("stage.init_angles_deg.alpha_p=nan", "stage.init_angles_deg.alpha_p"),
     ("eval.K=[0.1,nan]", "eval.K"), ("eval.success_r=inf", "eval.success_r"), ("eval.init_fields=gauss", "eval.init_fields"),
     ("optim.lr=nan", "optim.lr"), ("optim.lr=-1e-3", "optim.lr"), ("agent.gamma=1.5", "agent.gamma"),
-    ("agent.n_steps=0", "agent.n_steps"), ("agent.n_steps=2.5", "agent.n_steps"),
+    ("agent.n_steps=0", "agent.n_steps"), ("agent.n_steps=2.5", "agent.n_steps"), ("agent.n_steps=null", "agent.n_steps"),
     ("agent.exploration.end=1.5", "agent.exploration.end"),  # end <= start <= 1
     ("agent.exploration.decay_frames=0", "agent.exploration.decay_frames"),
     ("agent.target.tau=0", "agent.target.tau"), ("env.tol=-1e-5", "env.tol"),
