@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import math
+import sys
 
 import numpy as np
 import torch
@@ -164,12 +165,57 @@ def _(re, im, inverse):
     return torch.empty_like(re), torch.empty_like(im)
 
 
+@torch.library.custom_op("laserrl::fft_bits", mutates_args=())
+def fft_bits(bits: torch.Tensor, inverse: bool) -> torch.Tensor:
+    """(I)FFT along the last axis of complex64 data held as int64 bit patterns (``_pack_bits``).
+
+    A complex64 and an int64 are both 8 bytes, so the tensor is reinterpreted, not copied,
+    on the way in and out. Inside a compiled graph the packing and unpacking of the planar
+    float32 parts are then plain contiguous integer operations that Inductor vectorises and
+    fuses into the neighbouring kernels, instead of the strided copies that interleaving and
+    de-interleaving cost around ``fft_planar`` (about a fifth of a Strang stage at batch 256).
+    """
+    z = bits.view(torch.complex64)
+    z = torch.fft.ifft(z) if inverse else torch.fft.fft(z)
+    return z.view(torch.int64)
+
+
+@fft_bits.register_fake
+def _(bits, inverse):
+    return torch.empty_like(bits)
+
+
+def _pack_bits(re: torch.Tensor, im: torch.Tensor) -> torch.Tensor:
+    """float32 (re, im) -> int64 whose memory is the complex64 re + i im (little-endian:
+    the real part in the low 32 bits)."""
+    return (re.view(torch.int32).to(torch.int64) & 0xFFFFFFFF) | (im.view(torch.int32).to(torch.int64) << 32)
+
+
+def _unpack_bits(bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inverse of ``_pack_bits``. The shifts sign-extend each half, so that the conversion
+    to int32 is exact (no out-of-range narrowing)."""
+    re = ((bits << 32) >> 32).to(torch.int32).view(torch.float32)
+    im = (bits >> 32).to(torch.int32).view(torch.float32)
+    return re, im
+
+
+def _fft_any(re: torch.Tensor, im: torch.Tensor, inverse: bool):
+    # The bit-packed path pays off only when Inductor fuses the packing (in eager mode each
+    # integer op would be a pass of its own) and needs complex64 in little-endian memory.
+    if re.dtype == torch.float32 and _LITTLE_ENDIAN and torch.compiler.is_compiling():
+        return _unpack_bits(fft_bits(_pack_bits(re, im), inverse))
+    return fft_planar(re, im, inverse)
+
+
+_LITTLE_ENDIAN = sys.byteorder == "little"
+
+
 def _ifft_planar(re: torch.Tensor, im: torch.Tensor):
-    return fft_planar(re, im, True)
+    return _fft_any(re, im, True)
 
 
 def _fft_planar(re: torch.Tensor, im: torch.Tensor):
-    return fft_planar(re, im, False)
+    return _fft_any(re, im, False)
 
 
 class _Step:
@@ -321,7 +367,8 @@ class _SplitStep:
 
     Complex quantities are planar (real, imaginary) pairs of (B, 2, n) real tensors so that
     ``torch.compile`` fuses the elementwise work (Inductor does not generate code for
-    complex operators); the FFTs go through the ``fft_planar`` custom op. Flow lengths
+    complex operators); the FFTs go through the ``fft_bits`` (complex64, compiled) or
+    ``fft_planar`` custom op. Flow lengths
     are 0-d tensors, so one compiled graph serves every step size (and refinement level):
     compiling is a one-off ~20 s instead of minutes for an unrolled round trip.
     """
