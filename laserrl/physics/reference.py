@@ -7,15 +7,26 @@ against. It integrates the same Fourier-space ODE as ``laserrl.physics.cavity``:
     d/dz v^ = (-i D k^2/2 + i K - Gamma) v^ + g(E) (1 - tau k^2) v^ + F[ i(A|u|^2 + |v|^2) v + i B u^2 v* ]
     g(E) = 2 g0 / (1 + E/E0),  E = trapezoid(|u|^2 + |v|^2, t)
 
-then applies J1 JP J2 J3. ``rtol``/``atol`` default to scipy's own defaults
-(1e-3/1e-6), i.e. the per-round-trip DOP853 of the paper's public code.
+then applies J1 JP J2 J3. The integrator is the one the paper's public code calls:
+Hairer's Fortran DOP853 through ``scipy.integrate.ode`` ("dop853"), restarted every
+round trip. That code sets no tolerances, so it runs at that integrator's defaults,
+``PAPER_RTOL`` = 1e-6 and ``PAPER_ATOL`` = 1e-12, which are also the defaults here.
+(At ``solve_ivp``'s looser defaults, rtol 1e-3 and atol 1e-6, it is about 1.2x faster on
+this model and 3.5e-5 instead of 1.3e-9 from the stored high-accuracy solutions.)
 """
 from __future__ import annotations
 
 import numpy as np
-from scipy.integrate import solve_ivp
+from scipy.integrate import ode
 
 from laserrl.physics.params import CavityParams
+
+
+#: Tolerances of the paper's public code: ``scipy.integrate.ode``'s "dop853" defaults.
+PAPER_RTOL, PAPER_ATOL = 1e-6, 1e-12
+
+#: Steps per round trip at most (``ode``'s own default, 500, is too few for rtol 1e-10).
+MAX_STEPS = 1_000_000
 
 
 def grid(params: CavityParams) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +59,7 @@ def jones_matrix(angles_rad: np.ndarray) -> np.ndarray:
     return j1 @ jp @ j2 @ j3
 
 
-def propagate(u, v, K, params: CavityParams, rtol=1e-3, atol=1e-6):
+def propagate(u, v, K, params: CavityParams, rtol=PAPER_RTOL, atol=PAPER_ATOL):
     """Integrate the coupled NLS over z in [0, Z] (no Jones matrices)."""
     n = params.n
     _, k = grid(params)
@@ -74,16 +85,17 @@ def propagate(u, v, K, params: CavityParams, rtol=1e-3, atol=1e-6):
 
     uh0, vh0 = np.fft.fft(u), np.fft.fft(v)
     y0 = np.concatenate([uh0.real, uh0.imag, vh0.real, vh0.imag])
-    sol = solve_ivp(rhs, (0.0, params.Z), y0, method="DOP853", rtol=rtol, atol=atol)
-    if not sol.success:
-        raise RuntimeError(f"DOP853 failed: {sol.message}")
-    y = sol.y[:, -1]
+    solver = ode(rhs).set_integrator("dop853", rtol=rtol, atol=atol, nsteps=MAX_STEPS)
+    solver.set_initial_value(y0, 0.0)
+    y = solver.integrate(params.Z)
+    if not solver.successful():
+        raise RuntimeError(f"DOP853 failed with return code {solver.get_return_code()}")
     uh = y[:n] + 1j * y[n : 2 * n]
     vh = y[2 * n : 3 * n] + 1j * y[3 * n :]
     return np.fft.ifft(uh), np.fft.ifft(vh)
 
 
-def round_trip(u, v, angles_rad, K, params: CavityParams, rtol=1e-3, atol=1e-6):
+def round_trip(u, v, angles_rad, K, params: CavityParams, rtol=PAPER_RTOL, atol=PAPER_ATOL):
     """One round trip of one cavity: propagate, then apply J1 JP J2 J3."""
     u, v = propagate(np.asarray(u, complex), np.asarray(v, complex), float(K), params, rtol, atol)
     m = jones_matrix(np.asarray(angles_rad, float))
