@@ -77,6 +77,12 @@ def _one_of(cfg: DictConfig, dotted: str, choices) -> None:
         raise ConfigError(f"{dotted} must be one of {', '.join(map(str, choices))}, got {value!r}")
 
 
+def optim_lr_decay(cfg: DictConfig) -> tuple:
+    """(``optim.lr_decay``, ``optim.lr_decay_updates``); a constant rate for the saved config of a
+    run from before the keys existed."""
+    return cfg.optim.get("lr_decay", 1.0), cfg.optim.get("lr_decay_updates", 6000)
+
+
 def agent_n_steps(cfg: DictConfig):
     """``agent.n_steps``; 1 (one-step TD) for the saved config of a run from before the key existed."""
     return cfg.agent.get("n_steps", 1)
@@ -99,6 +105,9 @@ def check_train_config(cfg: DictConfig) -> None:
     _number(cfg, "collector.num_workers", low=1, integer=True)
     _number(cfg, "collector.worker_threads", low=1, integer=True, optional=True)
     _number(cfg, "optim.lr", low=0, low_open=True)
+    decay, decay_updates = optim_lr_decay(cfg)
+    _check_number(decay, "optim.lr_decay", low=0, high=1, low_open=True)
+    _check_number(decay_updates, "optim.lr_decay_updates", low=1, integer=True)
     _number(cfg, "optim.batch_size", low=1, integer=True)
     _number(cfg, "optim.updates_per_frame", low=0, low_open=True)
     _number(cfg, "optim.max_grad_norm", low=0, low_open=True)

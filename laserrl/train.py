@@ -27,7 +27,7 @@ from tqdm import tqdm
 from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_n_step,
                                 make_qnet, make_replay, make_target_updater)
 from laserrl.checkpoint import save_json
-from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, user_errors
+from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, optim_lr_decay, user_errors
 from laserrl.envs.factory import make_env
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
@@ -55,9 +55,13 @@ def agent_state(loss, egreedy, target) -> dict:
     return {"loss": loss.state_dict(), "egreedy": egreedy.state_dict(), "target_counter": getattr(target, "counter", None)}
 
 
-def load_agent_state(state: dict, loss, optimizer, egreedy, target) -> None:
+def load_agent_state(state: dict, loss, optimizer, lr_schedule, egreedy, target) -> None:
     loss.load_state_dict(state["resume"]["agent"]["loss"])
     optimizer.load_state_dict(state["optimizer"])
+    if state["resume"]["agent"].get("lr_schedule") is not None:
+        lr_schedule.load_state_dict(state["resume"]["agent"]["lr_schedule"])
+    else:  # a checkpoint from before the schedule existed: its rate was constant; count on from its updates
+        lr_schedule.last_epoch = int(state["updates"])
     egreedy.load_state_dict(state["resume"]["agent"]["egreedy"])
     if state["resume"]["agent"]["target_counter"] is not None:
         target.counter = state["resume"]["agent"]["target_counter"]
@@ -138,6 +142,9 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         warm_start(qnet, cfg.init_from, list(cfg.stage.controlled))
         target.init_()  # the target network starts from the warm-started weights
     optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
+    # stepped once per gradient update: lr * lr_decay ** (updates // lr_decay_updates)
+    decay, decay_updates = optim_lr_decay(cfg)
+    lr_schedule = torch.optim.lr_scheduler.StepLR(optimizer, step_size=int(decay_updates), gamma=float(decay))
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
     # n-step returns: batches become n-step transitions before they are stored (None: one-step TD)
     n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))
@@ -147,7 +154,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if resume is not None:
         run = RunCounters(**resume["resume"]["counters"])
         run.resumed_at_frames.append(run.frames)
-        load_agent_state(resume, loss, optimizer, egreedy, target)
+        load_agent_state(resume, loss, optimizer, lr_schedule, egreedy, target)
         load_replay(replay, resume)
         started -= run.train_seconds  # train.max_minutes counts the run's earlier invocations too
         print(f"resuming {run_dir} at {run.frames} frames, {run.updates} updates ({len(replay)} transitions in replay)")
@@ -166,7 +173,8 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "epsilon": float(egreedy.eps), "frames": run.frames, "updates": run.updates,
             "num_actions": qnet.num_actions, "stage": cfg.stage.name,
             "config": OmegaConf.to_container(cfg, resolve=True),
-            "resume": {"agent": agent_state(loss, egreedy, target), "counters": dataclasses.asdict(run),
+            "resume": {"agent": {**agent_state(loss, egreedy, target), "lr_schedule": lr_schedule.state_dict()},
+                       "counters": dataclasses.asdict(run),
                        "rng": rng_state(), "logger": logger.state_dict() if logger is not None else None},
         }, with_replay)
         save_json(run.history, run_dir / "history.json")
@@ -222,6 +230,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                         losses["loss"].backward()
                         torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
                         optimizer.step()
+                        lr_schedule.step()
                         target.step()
                         if cfg.replay.kind == "prioritized":
                             replay.update_tensordict_priority(sample)
@@ -235,6 +244,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 record = {
                     "frames": run.frames, "updates": run.updates, "time_s": time.perf_counter() - started,
                     "train/r_mean": float(r.mean()), "train/loss": run.last_loss, "train/epsilon": float(egreedy.eps),
+                    "train/lr": float(optimizer.param_groups[0]["lr"]),
                     "train/round_trips_per_step": float(data["next", "round_trips"].float().mean()),
                 }
                 if bool(done.any()):

@@ -56,6 +56,8 @@ def _compose(overrides):
     ("eval.K=[0.1,nan]", "eval.K"), ("eval.success_r=inf", "eval.success_r"), ("eval.init_fields=gauss", "eval.init_fields"),
     ("optim.lr=nan", "optim.lr"), ("optim.lr=-1e-3", "optim.lr"), ("agent.gamma=1.5", "agent.gamma"),
     ("agent.n_steps=0", "agent.n_steps"), ("agent.n_steps=2.5", "agent.n_steps"), ("agent.n_steps=null", "agent.n_steps"),
+    ("optim.lr_decay=0", "optim.lr_decay"), ("optim.lr_decay=1.5", "optim.lr_decay"), ("optim.lr_decay=fast", "optim.lr_decay"),
+    ("optim.lr_decay_updates=0", "optim.lr_decay_updates"), ("optim.lr_decay_updates=2.5", "optim.lr_decay_updates"),
     ("agent.exploration.end=1.5", "agent.exploration.end"),  # end <= start <= 1
     ("agent.exploration.decay_frames=0", "agent.exploration.decay_frames"),
     ("agent.target.tau=0", "agent.target.tau"), ("env.tol=-1e-5", "env.tol"),

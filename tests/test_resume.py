@@ -196,6 +196,25 @@ def test_an_n_step_run_resumes_with_the_transitions_it_stored(tmp_path):
     assert loaded.storage[: len(loaded)]["steps_to_next_obs"].max() == 3
 
 
+@pytest.mark.parametrize("saved_schedule", [True, False], ids=["schedule-saved", "checkpoint-from-before-schedules"])
+def test_the_learning_rate_schedule_continues_across_a_resume(tmp_path, saved_schedule):
+    run_dir = tmp_path / "run"
+    decay = ["optim.lr=0.001", "optim.lr_decay=0.5", "optim.lr_decay_updates=10"]
+    res = _run(run_dir, *TINY, *decay, "train.total_frames=128")
+    assert res.returncode == 0, res.stderr[-3000:]
+    if not saved_schedule:  # as written before checkpoints held the schedule: counted on from "updates"
+        ckpt = run_dir / "checkpoints" / "last.pt"
+        state = torch.load(ckpt, weights_only=False)
+        del state["resume"]["agent"]["lr_schedule"]
+        torch.save(state, ckpt)
+    res = _run(tmp_path / "resume", f"resume={run_dir}", "train.total_frames=256")
+    assert res.returncode == 0, res.stderr[-3000:]
+    history = json.loads((run_dir / "history.json").read_text())
+    assert history[-1]["frames"] == 256 and history[-1]["updates"] >= 30  # at least three halvings
+    for record in history:  # StepLR, stepped once per update: lr * 0.5 ** (updates // 10), before and after
+        assert record["train/lr"] == pytest.approx(0.001 * 0.5 ** (record["updates"] // 10), rel=1e-9)
+
+
 def test_replay_buffer_comes_back_with_size_and_priorities(tmp_path):
     replay = _filled_replay()
     RunSaver(tmp_path, replay).save(_state(100))
