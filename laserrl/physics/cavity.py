@@ -201,8 +201,9 @@ def _unpack_bits(bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def _fft_any(re: torch.Tensor, im: torch.Tensor, inverse: bool):
     # The bit-packed path pays off only when Inductor fuses the packing (in eager mode each
-    # integer op would be a pass of its own) and needs complex64 in little-endian memory.
-    if re.dtype == torch.float32 and _LITTLE_ENDIAN and torch.compiler.is_compiling():
+    # integer op would be a pass of its own) and needs complex64 in little-endian memory. It
+    # is CPU only: the strided copies it avoids are a CPU problem, and it is measured only there.
+    if re.dtype == torch.float32 and re.device.type == "cpu" and _LITTLE_ENDIAN and torch.compiler.is_compiling():
         return _unpack_bits(fft_bits(_pack_bits(re, im), inverse))
     return fft_planar(re, im, inverse)
 
