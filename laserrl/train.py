@@ -49,10 +49,12 @@ def build_agent(cfg: DictConfig, env):
     return qnet, actor, policy, egreedy, schedule, loss, target
 
 
-def agent_state(loss, egreedy, target) -> dict:
+def agent_state(loss, lr_schedule, egreedy, target) -> dict:
     """What learning needs beyond the Q-network and the optimizer: the loss module (online and
-    target network), the exploration module's epsilon and a hard target update's counter."""
-    return {"loss": loss.state_dict(), "egreedy": egreedy.state_dict(), "target_counter": getattr(target, "counter", None)}
+    target network), the learning-rate schedule, the exploration module's epsilon and a hard
+    target update's counter."""
+    return {"loss": loss.state_dict(), "lr_schedule": lr_schedule.state_dict(), "egreedy": egreedy.state_dict(),
+            "target_counter": getattr(target, "counter", None)}
 
 
 def load_agent_state(state: dict, loss, optimizer, lr_schedule, egreedy, target) -> None:
@@ -173,8 +175,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
             "epsilon": float(egreedy.eps), "frames": run.frames, "updates": run.updates,
             "num_actions": qnet.num_actions, "stage": cfg.stage.name,
             "config": OmegaConf.to_container(cfg, resolve=True),
-            "resume": {"agent": {**agent_state(loss, egreedy, target), "lr_schedule": lr_schedule.state_dict()},
-                       "counters": dataclasses.asdict(run),
+            "resume": {"agent": agent_state(loss, lr_schedule, egreedy, target), "counters": dataclasses.asdict(run),
                        "rng": rng_state(), "logger": logger.state_dict() if logger is not None else None},
         }, with_replay)
         save_json(run.history, run_dir / "history.json")

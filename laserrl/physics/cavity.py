@@ -199,6 +199,10 @@ def _unpack_bits(bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return re, im
 
 
+#: complex64 memory holds the real part first; ``_pack_bits`` puts it in the low 32 bits.
+_LITTLE_ENDIAN = sys.byteorder == "little"
+
+
 def _fft_any(re: torch.Tensor, im: torch.Tensor, inverse: bool):
     # The bit-packed path pays off only when Inductor fuses the packing (in eager mode each
     # integer op would be a pass of its own) and needs complex64 in little-endian memory. It
@@ -206,9 +210,6 @@ def _fft_any(re: torch.Tensor, im: torch.Tensor, inverse: bool):
     if re.dtype == torch.float32 and re.device.type == "cpu" and _LITTLE_ENDIAN and torch.compiler.is_compiling():
         return _unpack_bits(fft_bits(_pack_bits(re, im), inverse))
     return fft_planar(re, im, inverse)
-
-
-_LITTLE_ENDIAN = sys.byteorder == "little"
 
 
 def _ifft_planar(re: torch.Tensor, im: torch.Tensor):
@@ -368,7 +369,7 @@ class _SplitStep:
 
     Complex quantities are planar (real, imaginary) pairs of (B, 2, n) real tensors so that
     ``torch.compile`` fuses the elementwise work (Inductor does not generate code for
-    complex operators); the FFTs go through the ``fft_bits`` (complex64, compiled) or
+    complex operators); the FFTs go through the ``fft_bits`` (compiled complex64 on CPU) or
     ``fft_planar`` custom op. Flow lengths
     are 0-d tensors, so one compiled graph serves every step size (and refinement level):
     compiling is a one-off ~20 s instead of minutes for an unrolled round trip.
