@@ -227,10 +227,34 @@ def _summary(result: dict) -> dict:
     return {k: result[k] for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock", "by_K")}
 
 
-def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None,
+def _load_member(entry, index: int) -> list[dict]:
+    """The checkpoints of one bank entry: a path, or a list of paths (an ensemble, ``MeanQ``)
+    whose models were trained at the same K."""
+    paths = [entry] if isinstance(entry, (str, Path)) else list(entry)
+    if not paths or not all(isinstance(p, (str, Path)) for p in paths):
+        raise ConfigError(f"bank[{index}]: give a checkpoint path or a list of paths (an ensemble), got {entry!r}")
+    states = [load_checkpoint(p) for p in paths]
+    Ks = [_stage_K(st) for st in states]
+    if any(k != Ks[0] for k in Ks):
+        raise ConfigError(f"bank[{index}]: the models of an ensemble must be trained at the same K, got "
+                          + ", ".join(f"{st['path']}: {k}" for st, k in zip(states, Ks)))
+    return states
+
+
+def _member_qnet(states: list[dict], action_spec):
+    """The Q-network of a bank member: the model itself, or the mean of an ensemble's."""
+    from laserrl.agents.bank import MeanQ
+
+    qnets = [load_qnet(st, action_spec) for st in states]
+    return qnets[0] if len(qnets) == 1 else MeanQ(qnets)
+
+
+def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None,
                   single: str | None = None) -> dict:
     """Generalisation across K of a bank of models (and optionally one model), the paper's fig. 6.
 
+    ``bank``: one entry per member, a checkpoint path or a list of paths trained at the same K
+    (an ensemble whose Q-values are averaged, ``laserrl.agents.bank.MeanQ``).
     Rules: ``nearest`` acts at each K with the model trained at the nearest K (an oracle
     that knows K; a model fine-tuned over a K range serves the K inside it, see
     ``nearest_model``); ``max_q`` acts with ``MaxQBank`` (no knowledge of K); ``single`` is the
@@ -239,9 +263,9 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
     """
     from laserrl.agents.bank import make_bank_actor
 
-    states = [load_checkpoint(p) for p in bank]
-    model_K = [_stage_K(s) for s in states]
-    cfg = states[0]["config"]
+    members = [_load_member(entry, i) for i, entry in enumerate(bank)]
+    model_K = [_stage_K(m[0]) for m in members]
+    cfg = members[0][0]["config"]
     stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
     seed = int(cfg.get("seed", 0))
     Ks = _as_list(eval_cfg.get("K"))
@@ -249,14 +273,15 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
         raise ConfigError("a bank evaluation needs the K grid: eval.K=[-0.2,-0.15,...,0.4]")
     rules: dict[str, dict] = {}
     rules["max_q"] = _summary(evaluate_policy(
-        lambda env: make_bank_actor([load_qnet(s, env.action_spec_unbatched) for s in states], env.action_spec_unbatched),
+        lambda env: make_bank_actor([_member_qnet(m, env.action_spec_unbatched) for m in members], env.action_spec_unbatched),
         cfg["env"], stage_cfg, eval_cfg, seed))
     nearest_by_K: dict[str, dict] = {}
-    for m, state in enumerate(states):
+    for m, member in enumerate(members):
         mine = [K for K in Ks if nearest_model(model_K, K) == m]
         if mine:
-            res = evaluate_policy(lambda env, s=state: load_agent(s, env.action_spec_unbatched), cfg["env"], stage_cfg,
-                                  {**dict(eval_cfg), "K": mine}, seed)
+            res = evaluate_policy(lambda env, mm=member: make_actor(_member_qnet(mm, env.action_spec_unbatched),
+                                                                    env.action_spec_unbatched),
+                                  cfg["env"], stage_cfg, {**dict(eval_cfg), "K": mine}, seed)
             nearest_by_K.update({k: {**v, "model": m} for k, v in res["by_K"].items()})
     nearest_by_K = {f"{K:g}": nearest_by_K[f"{K:g}"] for K in Ks}
     rules["nearest"] = {"success_rate": sum(v["success_rate"] for v in nearest_by_K.values()) / len(Ks),
@@ -266,7 +291,7 @@ def evaluate_bank(bank: list[str], eval_cfg: Mapping[str, Any], out_dir: str | P
         state = load_checkpoint(single)
         rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
-    result = {"bank": [s["path"] for s in states], "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
+    result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members], "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
               "stage": stage_cfg.get("name"), "rules": rules,
               # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
               "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)
@@ -281,7 +306,10 @@ def _hydra_main(cfg: DictConfig) -> float:
         stage = OmegaConf.to_container(cfg.stage, resolve=True) if cfg.get("stage") else None
         eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
         if cfg.get("bank"):
-            result = evaluate_bank(list(cfg.bank), eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None)
+            bank = OmegaConf.to_container(cfg.bank, resolve=True) if OmegaConf.is_list(cfg.bank) else cfg.bank
+            if not isinstance(bank, list):
+                raise ConfigError(f"bank: give a list of checkpoints, e.g. bank=[K0.pt,[K0.2_seed0.pt,K0.2_seed1.pt]], got {bank!r}")
+            result = evaluate_bank(bank, eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None)
             return float(result["grid_success"]["max_q"])
         if cfg.checkpoint is None or cfg.checkpoint == "":
             raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH (or bank=[PATH,...])")

@@ -180,18 +180,24 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     assert res.stdout.count("reusing") == 2 and (tmp_path / "transfer.md").read_text() == table
 
     ev = tmp_path / "bank"
-    res = run("laserrl-eval", f"checkpoint={base}/checkpoints/last.pt", f"bank=[{base}/checkpoints/last.pt,{tuned}]",
+    # the second member is an ensemble (a list of checkpoints trained at the same K)
+    res = run("laserrl-eval", f"checkpoint={base}/checkpoints/last.pt", f"bank=[{base}/checkpoints/last.pt,[{tuned},{tuned}]]",
               "eval.K=[0.0,0.1,0.3]", "eval.steps=2", "eval.starts_deg=[-30]", "eval.compile=false",
               f"hydra.run.dir={ev}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads((ev / "eval.json").read_text())
-    assert result["bank_K"] == [0.1, 0.0]
+    assert result["bank_K"] == [0.1, 0.0] and result["bank"][1] == [str(tuned), str(tuned)]
     assert set(result["rules"]) == {"single", "nearest", "max_q"}
     for rule in result["rules"].values():
         assert list(rule["by_K"]) == ["0", "0.1", "0.3"]
     # nearest K: the fine-tuned model (index 1) at K = 0, the base elsewhere
     assert [v["model"] for v in result["rules"]["nearest"]["by_K"].values()] == [1, 0, 0]
     assert (ev / "generalisation.png").stat().st_size > 0
+    # an ensemble of models trained at different K is refused, naming the entry, before any evaluation
+    res = run("laserrl-eval", f"bank=[{tuned},[{tuned},{base}/checkpoints/last.pt]]", "eval.K=[0.0]",
+              f"hydra.run.dir={tmp_path / 'bad_bank'}", cwd=tmp_path)
+    _one_line_error(res, "bank[1]")
+    assert not (tmp_path / "bad_bank" / "eval.json").exists()
 
 
 def test_transfer_rejects_a_non_numeric_K_setting(trained, tmp_path):

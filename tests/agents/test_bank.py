@@ -4,7 +4,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.data import Categorical
 
-from laserrl.agents.bank import MaxQBank, make_bank_actor
+from laserrl.agents.bank import MaxQBank, MeanQ, make_bank_actor
 from laserrl.agents.qnet import FieldQNet
 
 
@@ -41,3 +41,25 @@ def test_bank_actor_writes_the_greedy_action_of_the_chosen_model():
 def test_models_must_agree_on_the_action_count():
     with pytest.raises(ValueError, match="same number of actions"):
         MaxQBank([_qnet(0, 3), _qnet(1, 9)])
+
+
+def test_an_ensemble_averages_its_models_q_values_and_can_be_a_bank_member():
+    nets = [_qnet(0), _qnet(1), _qnet(2)]
+    fields, angles = torch.randn(8, 4, 64), torch.randn(8, 4)
+    ensemble = MeanQ(nets)
+    with torch.no_grad():
+        q = torch.stack([net(fields, angles) for net in nets])
+        assert torch.allclose(ensemble(fields, angles), q.mean(0))
+        # a bank of a single model and an ensemble: per cavity the higher greedy Q wins
+        single = _qnet(3)
+        chosen, model = MaxQBank([single, ensemble])(fields, angles)
+        both = torch.stack([single(fields, angles), q.mean(0)])
+    assert ensemble.num_actions == 3
+    assert torch.equal(model, both.max(-1).values.argmax(0))
+
+
+def test_an_ensemble_needs_models_with_the_same_actions():
+    with pytest.raises(ValueError, match="ensemble must have the same number of actions"):
+        MeanQ([_qnet(0, 3), _qnet(1, 9)])
+    with pytest.raises(ValueError, match="at least one"):
+        MeanQ([])
