@@ -146,3 +146,12 @@ def test_a_bank_model_fine_tuned_again_over_a_K_range_counts_every_fine_tuning(t
     Path(point).unlink()  # a parent that is gone ends the chain
     assert _finetune_episodes(torch.load(ranged, weights_only=False)) == 32
     assert _K_text([0.3, 0.4]) == "[0.3, 0.4]" and _K_text(-0.2) == "-0.2"
+
+
+def test_bank_entries_keep_ensembles_and_bank_paths_flattens_them():
+    from laserrl.report.context import bank_entries, bank_paths
+
+    bank = bank_entries([Path("a.pt"), ["b0.pt", Path("b1.pt")], "c.pt"])
+    assert bank == ["a.pt", ["b0.pt", "b1.pt"], "c.pt"]
+    assert bank_paths(bank) == ["a.pt", "b0.pt", "b1.pt", "c.pt"]
+    assert bank_entries(None) == [] == bank_paths([])

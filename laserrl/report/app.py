@@ -21,7 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 from laserrl.checkpoint import load_checkpoint
 from laserrl.config import ConfigError, user_errors
 from laserrl.report.claims import build_claims, markdown, to_json
-from laserrl.report.context import ReportContext, grid, load_model, producing_command, read_json
+from laserrl.report.context import (ReportContext, bank_entries, bank_paths, grid, load_model, producing_command,
+                                    read_json)
 from laserrl.report.figures import FIGURES, draw_figures
 from laserrl.report.spot import train_missing
 from laserrl.train import CONF_DIR
@@ -77,9 +78,9 @@ def run_report(cfg: DictConfig) -> dict:
     _check_inputs(rcfg)
     commands = {"report": report_command()}
     checkpoints = {role: rcfg["checkpoints"].get(role) for role in ("siso", "duo", "miso")}
-    bank = [str(p) for p in rcfg["checkpoints"].get("bank") or []]
+    bank = bank_entries(rcfg["checkpoints"].get("bank"))
     models = {role: load_model(path, role) for role, path in checkpoints.items() if path}  # fail fast
-    for path in bank:
+    for path in bank_paths(bank):
         load_checkpoint(path)
     trained = train_missing(rcfg["train"], run_dir, checkpoints, bank, rcfg["results"])
     for role in ("siso", "duo", "miso"):
@@ -87,7 +88,7 @@ def run_report(cfg: DictConfig) -> dict:
             models[role] = load_model(checkpoints[role], role, trained[role]["command"])
         commands[role] = models[role].command or f"(not recorded: {models[role].path})"
     commands["bank"] = (trained["bank"]["command"] if "bank" in trained else
-                        "; ".join(dict.fromkeys(producing_command(p) or p for p in bank)))
+                        "; ".join(dict.fromkeys(producing_command(p) or p for p in bank_paths(bank))))
     ctx = ReportContext(rcfg, run_dir, models, bank, commands, int(cfg.seed))
     ctx.run_commands.update({Path(r["run_dir"]).resolve(): r["command"] for r in trained.values()})
     figures = draw_figures(ctx, out_dir / "figures", rcfg["figures"])

@@ -13,6 +13,7 @@ from typing import Callable
 
 from laserrl.analysis.landscape import interval_width, intervals
 from laserrl.checkpoint import CheckpointError, load_checkpoint
+from laserrl.report.context import bank_paths
 
 REQUIRED = ("r_modelocked", "r_planewave", "alpha1_starts", "alpha1_lock_range", "hysteresis", "hysteresis_width",
             "episodes_train", "episodes_finetune", "K_single", "K_bank")
@@ -226,7 +227,7 @@ def _episodes_finetune(ctx) -> Claim:
                 f"succeeded" if done else "none succeeded")
         parts.append(f"to greedy success >= 0.9: {per_K} ({mean})")
     bank = []
-    for k, path in enumerate(ctx.bank):
+    for path in bank_paths(ctx.bank):  # every model of an ensemble was fine-tuned on its own
         state = load_checkpoint(path)
         cfg = state["config"]
         if cfg.get("init_from"):

@@ -164,17 +164,28 @@ def frames_to_success(run_dir: Path, target: float) -> int | None:
     return None
 
 
+def bank_entries(bank) -> list:
+    """``report.checkpoints.bank`` as strings: each entry a path, or a list of paths (an ensemble,
+    see ``laserrl.evaluate.evaluate_bank``)."""
+    return [str(e) if isinstance(e, (str, Path)) else [str(p) for p in e] for e in bank or []]
+
+
+def bank_paths(bank: list) -> list[str]:
+    """Every checkpoint path of a bank, ensembles flattened, in order."""
+    return [p for e in bank for p in ([e] if isinstance(e, str) else e)]
+
+
 class ReportContext:
     """Checkpoints, result files and settings of one report; see the module docstring.
 
     Args:
         cfg: the ``report`` section of conf/report.yaml as a plain dict.
         run_dir: where work files go.  models: role -> Model (siso, duo, miso).
-        bank: checkpoint paths of the bank (fig. 6).  commands: label -> command line of the
+        bank: the bank's entries (fig. 6), paths or lists of paths (ensembles).  commands: label -> command line of the
             runs behind the numbers ("report": this report's own command).
     """
 
-    def __init__(self, cfg: Mapping[str, Any], run_dir: Path, models: dict[str, Model], bank: list[str],
+    def __init__(self, cfg: Mapping[str, Any], run_dir: Path, models: dict[str, Model], bank: list,
                  commands: dict[str, str], seed: int = 0):
         self.cfg = cfg
         self.run_dir = Path(run_dir)
