@@ -25,18 +25,24 @@ from laserrl.agents.dqn import OBS_KEYS
 __all__ = ["MaxQBank", "MeanQ", "make_bank_actor"]
 
 
+def _common_action_count(qnets: list[nn.Module], group: str, of_group: str) -> int:
+    """The number of actions that all ``qnets`` share; ValueError if there are none or they differ.
+    ``group`` / ``of_group`` name the collection in the messages ("a model bank" / "a bank")."""
+    if not qnets:
+        raise ValueError(f"{group} needs at least one Q-network")
+    actions = {q.num_actions for q in qnets}
+    if len(actions) != 1:
+        raise ValueError(f"all models of {of_group} must have the same number of actions, got {sorted(actions)}")
+    return actions.pop()
+
+
 class MeanQ(nn.Module):
     """The mean of the Q-values of several Q-networks with the same actions (an ensemble)."""
 
     def __init__(self, qnets: list[nn.Module]):
         super().__init__()
-        if not qnets:
-            raise ValueError("an ensemble needs at least one Q-network")
-        actions = {q.num_actions for q in qnets}
-        if len(actions) != 1:
-            raise ValueError(f"all models of an ensemble must have the same number of actions, got {sorted(actions)}")
+        self.num_actions = _common_action_count(qnets, "an ensemble", "an ensemble")
         self.qnets = nn.ModuleList(qnets)
-        self.num_actions = actions.pop()
 
     def forward(self, fields: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
         return torch.stack([net(fields, angles) for net in self.qnets]).mean(0)
@@ -47,11 +53,7 @@ class MaxQBank(nn.Module):
 
     def __init__(self, qnets: list[FieldQNet | MeanQ]):
         super().__init__()
-        if not qnets:
-            raise ValueError("a model bank needs at least one Q-network")
-        actions = {q.num_actions for q in qnets}
-        if len(actions) != 1:
-            raise ValueError(f"all models of a bank must have the same number of actions, got {sorted(actions)}")
+        _common_action_count(qnets, "a model bank", "a bank")
         self.qnets = nn.ModuleList(qnets)
 
     def forward(self, fields: torch.Tensor, angles: torch.Tensor):
