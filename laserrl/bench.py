@@ -5,6 +5,9 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
 * the scipy reference (``laserrl.physics.reference``): one cavity, scipy's Fortran DOP853
   (``scipy.integrate.ode``) per round trip at that integrator's default tolerances (rtol
   1e-6, atol 1e-12), as the paper's public code runs it; the ratios are against this.
+  It is timed three times, before, between and after the torch timings, and the ratios
+  use the median, so that a passing slowdown of the host during one short timing does
+  not move them all;
   For comparison also at ``solve_ivp``'s looser defaults (rtol 1e-3, atol 1e-6);
 * the torch solver at the default settings (complex64, ``CavityParams().z_steps``)
   for each batch size, compiled unless ``--no-compile``;
@@ -25,6 +28,7 @@ import argparse
 import math
 import os
 import platform
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -267,30 +271,41 @@ def main(argv: list[str] | None = None) -> int:
         acc_scipy = scipy_accuracy(data, params)
         acc_loose = scipy_accuracy(data, params, LOOSE_TOL)
 
-    t_ref = time_scipy(params, args.scipy_round_trips)
-    ref_rate = 1.0 / t_ref
+    # The reference is timed before, between and after the torch timings, and the median is
+    # used: the host's speed drifts over a run, and one short timing of it moves every ratio.
+    ref_times = [time_scipy(params, args.scipy_round_trips)]
     loose_rate = 1.0 / time_scipy(params, args.scipy_round_trips, LOOSE_TOL)
-    rows = [(f"{SCIPY_PAPER}, 1 cavity", 1, ref_rate, 1.0, float("nan"), acc_scipy, float("nan")),
-            (f"{SCIPY_LOOSE}, 1 cavity", 1, loose_rate, loose_rate / ref_rate, float("nan"), acc_loose, float("nan"))]
+    measured = []  # (name, batch, rate, fft-bound rate, accuracy, first call)
     for batch in args.batch_sizes:
         per_rt, first = time_torch(batch, params, dtype, args.device, compile, args.min_seconds)
         fft_rt = time_fft_bound(batch, params, dtype, args.device)
         rate = batch / per_rt
-        rows.append((f"torch batch {batch}", batch, rate, rate / ref_rate, batch / fft_rt, acc_torch, first))
+        measured.append((f"torch batch {batch}", batch, rate, batch / fft_rt, acc_torch, first))
         print(f"  measured batch {batch}: {rate:,.0f} round trips/s", file=sys.stderr, flush=True)
-    per_batch = rows[2:]
+    ref_times.append(time_scipy(params, args.scipy_round_trips))
     machine_ref = float("nan")
     if args.processes > 1:
         n, batch = args.processes, args.process_batch
         machine_ref = time_processes("scipy", n, 1, params, args.device, compile, args.min_seconds)
-        rows.append((f"{SCIPY_PAPER}, {n} processes x 1 cavity", 1, machine_ref, machine_ref / ref_rate,
-                     float("nan"), acc_scipy, float("nan")))
         machine_rate = time_processes("torch", n, batch, params, args.device, compile, args.min_seconds)
-        rows.append((f"torch {n} processes x batch {batch} (1 thread each)", batch, machine_rate,
-                     machine_rate / ref_rate, float("nan"), acc_torch, float("nan")))
         print(f"  measured {n} processes: torch {machine_rate:,.0f}, scipy {machine_ref:,.0f} round trips/s",
               file=sys.stderr, flush=True)
+    ref_times.append(time_scipy(params, args.scipy_round_trips))
+    t_ref = statistics.median(ref_times)
+    ref_rate = 1.0 / t_ref
+    rows = [(f"{SCIPY_PAPER}, 1 cavity", 1, ref_rate, 1.0, float("nan"), acc_scipy, float("nan")),
+            (f"{SCIPY_LOOSE}, 1 cavity", 1, loose_rate, loose_rate / ref_rate, float("nan"), acc_loose, float("nan"))]
+    rows += [(name, b, rate, rate / ref_rate, bound, acc, first) for name, b, rate, bound, acc, first in measured]
+    per_batch = rows[2:]
+    if args.processes > 1:
+        rows.append((f"{SCIPY_PAPER}, {n} processes x 1 cavity", 1, machine_ref, machine_ref / ref_rate,
+                     float("nan"), acc_scipy, float("nan")))
+        rows.append((f"torch {n} processes x batch {batch} (1 thread each)", batch, machine_rate,
+                     machine_rate / ref_rate, float("nan"), acc_torch, float("nan")))
 
+    print(f"reference timed {len(ref_times)} times ({args.scipy_round_trips} round trips each, before, between and "
+          f"after the torch timings): {', '.join(f'{t * 1e3:.1f}' for t in ref_times)} ms per round trip; "
+          f"the ratios use the median")
     print()
     print("| solver | batch | cavity round trips / s | x scipy | FFT-bound round trips / s | max rel. error vs reference | first call (s) |")
     print("|---|---:|---:|---:|---:|---:|---:|")

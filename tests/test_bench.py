@@ -1,5 +1,6 @@
 """laserrl-bench prints one table row per solver with rates, ratios and accuracy."""
 import re
+import statistics
 
 import pytest
 
@@ -22,6 +23,11 @@ def test_bench_prints_table_with_ratio_and_accuracy(capsys):
     assert float(paper.split("|")[6]) < 1e-7  # the paper's tolerance: far tighter than the torch solver's 1e-4
     assert float(paper.split("|")[6]) < float(loose.split("|")[6]) < 1e-4
     assert float(paper.split("|")[4]) == 1  # the ratios are against the paper's reference
+    # the reference is timed before, between and after torch, and the median of the three is used
+    times = re.search(r"reference timed 3 times .*?: ([\d.]+), ([\d.]+), ([\d.]+) ms per round trip", out)
+    assert times
+    median_ms = statistics.median(float(t) for t in times.groups())
+    assert float(paper.split("|")[3].replace(",", "")) == pytest.approx(1e3 / median_ms, rel=0.02, abs=1)
     assert re.search(r"best: [\d,]+ cavity round trips/s at batch \d+ = [\d,]+x the scipy reference", out)
 
 

@@ -1,4 +1,5 @@
-"""The FFT custom ops that carry planar (real, imaginary) parts into and out of torch.fft."""
+"""The FFT helpers that carry planar (real, imaginary) parts into and out of torch.fft: the
+bit-packed complex64 path (`fft_bits`) and the `fft_planar` custom op."""
 import math
 
 import pytest
