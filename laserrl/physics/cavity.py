@@ -540,7 +540,8 @@ class _SplitStep:
         coarse = torch.view_as_real(self._to_complex(self.strang(state, K, steps)))
         fine = torch.view_as_real(self._to_complex(self.strang(state, K, 2 * steps)))
         diff = fine - coarse
-        error = torch.sqrt(diff.square().sum((-1, -2, -3)) / fine.square().sum((-1, -2, -3)).clamp_min(1e-30))
+        dims = (-1, -2, -3)
+        error = torch.linalg.vector_norm(diff, dim=dims) / torch.linalg.vector_norm(fine, dim=dims).clamp_min(1e-15)
         return torch.view_as_complex(fine.add(diff, alpha=1.0 / 3.0)), error
 
 
