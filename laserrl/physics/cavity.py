@@ -202,11 +202,16 @@ def _unpack_bits(bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 _LITTLE_ENDIAN = sys.byteorder == "little"
 
 
+def _uses_bits(real_dtype: torch.dtype, device: torch.device, compiled: bool) -> bool:
+    """Whether the FFTs take the bit-packed path (``fft_bits``). It pays off only when Inductor
+    fuses the packing (in eager mode each integer op would be a pass of its own) and needs
+    complex64 in little-endian memory. CPU only: the strided copies it avoids are a CPU
+    problem, and it is measured only there."""
+    return compiled and real_dtype == torch.float32 and device.type == "cpu" and _LITTLE_ENDIAN
+
+
 def _fft_any(re: torch.Tensor, im: torch.Tensor, inverse: bool):
-    # The bit-packed path pays off only when Inductor fuses the packing (in eager mode each
-    # integer op would be a pass of its own) and needs complex64 in little-endian memory. It
-    # is CPU only: the strided copies it avoids are a CPU problem, and it is measured only there.
-    if re.dtype == torch.float32 and re.device.type == "cpu" and _LITTLE_ENDIAN and torch.compiler.is_compiling():
+    if _uses_bits(re.dtype, re.device, torch.compiler.is_compiling()):
         return _unpack_bits(fft_bits(_pack_bits(re, im), inverse))
     return fft_planar(re, im, inverse)
 
@@ -386,10 +391,7 @@ class _SplitStep:
         self.shape = (1.0 - params.tau * k**2).to(**as_dev)  # gain filter S(k)
         self.as_dev = as_dev
         self._tables = {}
-        # The bit-packed carrier pays off only when Inductor fuses the packing (in eager mode
-        # each integer op would be a pass of its own) and needs complex64 in little-endian
-        # memory. CPU only: the strided copies it avoids are a CPU problem, measured only there.
-        self.packed = compiled and real_dtype == torch.float32 and device.type == "cpu" and _LITTLE_ENDIAN
+        self.packed = _uses_bits(real_dtype, device, compiled)
         self.compiled = compiled
         self.first_linear_fn, self.stage_fn = self.first_linear, self.stage
         if compiled:
