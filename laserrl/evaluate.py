@@ -106,8 +106,9 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
         if eval_cfg.get(key) is None:
             raise ConfigError(f"eval.{key} is not set and stage {stage_cfg.get('name')!r} has no protocol.{key}")
     env_cfg = dict(env_cfg)
-    if eval_cfg.get("max_round_trips"):
-        env_cfg["max_round_trips"] = int(eval_cfg["max_round_trips"])
+    for key in ("max_round_trips", "min_round_trips"):
+        if eval_cfg.get(key):
+            env_cfg[key] = int(eval_cfg[key])
     if eval_cfg.get("dtype"):
         env_cfg["dtype"] = eval_cfg["dtype"]
     env_cfg["compile"] = bool(eval_cfg.get("compile", env_cfg.get("compile", False)))
@@ -165,7 +166,8 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
                           "mean_final_reward": sum(p["final_reward"] for p in rows) / len(rows)}
     return {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
-        "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"], "K": Ks,
+        "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"],
+        "min_round_trips": env_cfg.get("min_round_trips", 2), "K": Ks,
         "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,

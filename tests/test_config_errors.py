@@ -114,7 +114,7 @@ def test_the_default_configs_pass():
 
 
 # ----------------------------------------------------------------------------- fuzz: random env configs
-KEY = re.compile(r"^(env\.num_envs|env\.max_round_trips|env\.tol|env\.dtype|env\.reward_\w+|env\.physics\.\w+|"
+KEY = re.compile(r"^(env\.num_envs|env\.max_round_trips|env\.min_round_trips|env\.tol|env\.dtype|env\.reward_\w+|env\.physics\.\w+|"
                  r"stage\.(controlled|steps_deg|init_angles_deg(\.\w+)?|K|init_fields|sech_\w+|noise_scale|max_steps))\b")
 FINITE = st.floats(-100, 100, allow_nan=False)
 HOSTILE_NUMBER = st.sampled_from([0.0, -1.0, math.nan, math.inf, -math.inf, 1e12, "x", None, [1.0]])
@@ -213,9 +213,9 @@ def test_a_nan_field_raises_before_it_reaches_the_replay_buffer():
     replay = make_replay("prioritized", 64, 4)
     batches = iter(collector)
     replay.extend(next(batches).reshape(-1))
-    u = env.base_env._u.clone()
+    u = env.base_env.state.u.clone()
     u[2, 5] = complex(math.nan, 0.0)
-    env.base_env._u = u  # the physics state of cavity 2 goes bad between two steps
+    env.base_env.state.u = u  # the physics state of cavity 2 goes bad between two steps
     with pytest.raises(NonFiniteFieldError, match=r"cavity 2\b"):
         replay.extend(next(batches).reshape(-1))
     collector.shutdown()

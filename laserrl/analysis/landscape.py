@@ -6,16 +6,10 @@ same angles; which one it is in depends on where it came from. Sweeping an angle
 down and comparing the two rewards at each angle shows where that is the case: the
 intervals where the sweeps disagree are the hysteresis of the paper's fig. 4(a).
 
-Each move to the next angle is one *agent step* of the environment (``LaserCavityEnv``):
-at most ``max_round_trips`` round trips, stopping when the change of
-phi = sqrt(|u|^2 + |v|^2) between round trips falls below ``tol``. So the landscape is the
-one an agent turning the plate one step at a time sees, with the env's numerics
-(``StepSettings.from_task``). One difference, ``min_round_trips``: J1 (alpha1) is the
-last, unitary element of the round trip, so the first round trip after a change of
-alpha1 alone leaves phi unchanged and the convergence check stops a converged cavity
-after that one round trip; the change then only acts in the next agent step. The env
-has this one-step lag; the sweeps force ``min_round_trips = 2`` round trips per step
-(the default), so that every angle acts in its own step.
+Each move to the next angle is one *agent step* of the environment
+(``laserrl.envs.step.step_cavity``, the function the env steps with), with the env's numerics
+(``StepSettings.from_task``): so the landscape is the one an agent turning the plate one
+step at a time sees.
 
 All rows of a grid and both sweep directions run as one batch of cavities.
 """
@@ -28,7 +22,8 @@ from typing import Sequence
 import torch
 
 from laserrl.envs.laser_env import ANGLE_NAMES, LaserTask
-from laserrl.physics import CavityParams, reward_terms, round_trip, run_to_convergence, sech_fields
+from laserrl.envs.step import CavityState, StepNumerics, _positive_int, step_cavity
+from laserrl.physics import CavityParams, sech_fields
 
 _DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
 
@@ -42,7 +37,7 @@ class StepSettings:
         tol: convergence tolerance per step (env: 1e-5 in complex64).
         dtype: complex dtype of the fields.
         compile: ``torch.compile`` the round trip.
-        min_round_trips: round trips per step at least (see the module docstring; the env: 1).
+        min_round_trips: round trips per step at least (env: 2; see ``laserrl.envs.step``).
         settle_round_trips: round trips at most to settle the initial fields at the first
             angle of a sweep, and of a cold start (paper: 500 per step).
     """
@@ -55,42 +50,42 @@ class StepSettings:
     settle_round_trips: int = 500
 
     def __post_init__(self):
-        for name in ("max_round_trips", "min_round_trips", "settle_round_trips"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or int(value) != value or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}")
-        if self.min_round_trips > self.max_round_trips:
-            raise ValueError(f"min_round_trips ({self.min_round_trips}) must be <= max_round_trips ({self.max_round_trips})")
+        _positive_int(self.settle_round_trips, "settle_round_trips")
+        self.step  # StepNumerics validates the rest
+
+    @property
+    def step(self) -> StepNumerics:
+        """The numerics of one agent step."""
+        return StepNumerics(self.max_round_trips, self.tol, self.min_round_trips, self.compile)
+
+    @property
+    def settle(self) -> StepNumerics:
+        """The numerics of settling at fixed angles: up to ``settle_round_trips``."""
+        return StepNumerics(self.settle_round_trips, self.tol, min(self.min_round_trips, self.settle_round_trips),
+                            self.compile)
 
     @classmethod
     def from_task(cls, task: LaserTask, **changes) -> "StepSettings":
-        """The env's per-step numerics of ``task`` (max_round_trips, tol, dtype, compile)."""
-        kwargs = dict(max_round_trips=task.max_round_trips, tol=task.tol, dtype=_DTYPES[task.dtype], compile=task.compile)
+        """The env's per-step numerics of ``task`` (max and min round trips, tol, dtype, compile)."""
+        kwargs = dict(max_round_trips=task.max_round_trips, min_round_trips=task.min_round_trips, tol=task.tol,
+                      dtype=_DTYPES[task.dtype], compile=task.compile)
         kwargs.update(changes)
         return cls(**kwargs)
 
 
-def agent_step(u, v, angles, K, params: CavityParams, settings: StepSettings):
-    """The cavity after one agent step at ``angles`` (B, 4) radians: ``settings.min_round_trips``
-    round trips, then more until converged or ``max_round_trips`` in all. Returns (u, v, round trips)."""
-    forced = settings.min_round_trips - 1
-    for _ in range(forced):
-        u, v = round_trip(u, v, angles, K, params, compile=settings.compile)
-    res = run_to_convergence(u, v, angles, K, params, tol=settings.tol,
-                             max_round_trips=settings.max_round_trips - forced, compile=settings.compile)
-    return res.u, res.v, res.round_trips + forced
+def initial_state(u, v, angles, K) -> CavityState:
+    """A ``CavityState`` of B cavities from fields (B, n), angles (B, 4) radians and K (B,) or a number."""
+    B = u.shape[0]
+    K = torch.as_tensor(K, dtype=torch.float64, device=u.device).expand(B).clone()
+    return CavityState(u=u, v=v, angles=angles.to(torch.float64), K=K,
+                       step_count=torch.zeros(B, dtype=torch.int64, device=u.device), batch_size=[B])
 
 
 def settle(u, v, angles, K, params: CavityParams, settings: StepSettings):
     """Run cavities at fixed ``angles`` until converged or ``settings.settle_round_trips``
     (at least ``min_round_trips``). Returns (u, v, r, converged)."""
-    forced = min(settings.min_round_trips, settings.settle_round_trips) - 1
-    for _ in range(forced):
-        u, v = round_trip(u, v, angles, K, params, compile=settings.compile)
-    res = run_to_convergence(u, v, angles, K, params, tol=settings.tol,
-                             max_round_trips=settings.settle_round_trips - forced, compile=settings.compile)
-    return res.u, res.v, reward_terms(res.u, res.v, params)[2], res.converged
+    state, out = step_cavity(initial_state(u, v, angles, K), angles, params, settings.settle)
+    return state.u, state.v, out.r, out.converged
 
 
 def _values(values_deg, name: str = "values_deg") -> torch.Tensor:
@@ -172,7 +167,7 @@ def sweep(angle: str, values_deg: Sequence[float], base_deg, K: float, params: C
 
     Each sweep starts from the paper's sech fields at its first angle, settled for up to
     ``settings.settle_round_trips`` round trips; then each next angle is one agent step
-    (``agent_step``). Rows (``base_deg`` (R, 4), the swept entry ignored) and the two
+    (``laserrl.envs.step.step_cavity``). Rows (``base_deg`` (R, 4), the swept entry ignored) and the two
     directions run as one batch of 2R cavities.
     """
     if angle not in ANGLE_NAMES:
@@ -182,20 +177,15 @@ def sweep(angle: str, values_deg: Sequence[float], base_deg, K: float, params: C
     R, n, ia = base.shape[0], values.numel(), ANGLE_NAMES.index(angle)
     angles = base.repeat(2, 1)  # rows 0..R-1 sweep up, R..2R-1 sweep down
     u, v = sech_fields(2 * R, params, dtype=settings.dtype)
+    state = initial_state(u, v, torch.deg2rad(angles), float(K))
     r_up, r_down = torch.zeros(R, n, dtype=torch.float64), torch.zeros(R, n, dtype=torch.float64)
     rt_up, rt_down = torch.zeros(R, n, dtype=torch.int64), torch.zeros(R, n, dtype=torch.int64)
-    Kb = torch.full((2 * R,), float(K), dtype=torch.float64)
     for i in range(n):
         angles[:R, ia] = values[i]
         angles[R:, ia] = values[n - 1 - i]
-        rad = torch.deg2rad(angles)
-        if i == 0:
-            res = run_to_convergence(u, v, rad, Kb, params, tol=settings.tol, max_round_trips=settings.settle_round_trips,
-                                     compile=settings.compile)
-            u, v, rts = res.u, res.v, res.round_trips
-        else:
-            u, v, rts = agent_step(u, v, rad, Kb, params, settings)
-        r = reward_terms(u, v, params)[2].double()
+        # the first angle settles the initial fields, each next one is an agent step
+        state, out = step_cavity(state, torch.deg2rad(angles), params, settings.settle if i == 0 else settings.step)
+        r, rts = out.r.double(), out.round_trips
         r_up[:, i], r_down[:, n - 1 - i] = r[:R], r[R:]
         rt_up[:, i], rt_down[:, n - 1 - i] = rts[:R], rts[R:]
     return Sweep(angle, values, base.clone(), float(K), r_up, r_down, rt_up, rt_down)
@@ -213,6 +203,4 @@ def cold_landscape(angle: str, values_deg: Sequence[float], base_deg, K: float, 
     angles = base[:, None, :].repeat(1, n, 1)
     angles[:, :, ANGLE_NAMES.index(angle)] = values
     u, v = sech_fields(R * n, params, dtype=settings.dtype)
-    res = run_to_convergence(u, v, torch.deg2rad(angles.reshape(R * n, 4)), float(K), params, tol=settings.tol,
-                             max_round_trips=settings.settle_round_trips, compile=settings.compile)
-    return reward_terms(res.u, res.v, params)[2].double().reshape(R, n)
+    return settle(u, v, torch.deg2rad(angles.reshape(R * n, 4)), float(K), params, settings)[2].double().reshape(R, n)

@@ -14,9 +14,10 @@ from typing import Mapping, Sequence
 
 import torch
 
-from laserrl.analysis.landscape import StepSettings, agent_step
+from laserrl.analysis.landscape import StepSettings, initial_state
+from laserrl.envs.step import step_cavity
 from laserrl.envs.laser_env import ANGLE_NAMES
-from laserrl.physics import CavityParams, reward_terms, sech_fields
+from laserrl.physics import CavityParams, sech_fields
 
 
 def straight_path(start_deg, end_deg, steps: int) -> torch.Tensor:
@@ -65,8 +66,8 @@ def follow_paths(paths_deg, K, params: CavityParams, settings: StepSettings, *, 
     """Run B cavities along B angle paths (B, T, 4) deg, one agent step per point.
 
     Starts from ``u0, v0`` (B, n) or, if not given, the paper's sech fields (the env's
-    reset state). With ``settings.min_round_trips = 1`` and the env's other numerics
-    this reproduces the env's rollouts of the same angles.
+    reset state). Each point is one ``laserrl.envs.step.step_cavity``, the env's own step: with
+    the env's numerics (``StepSettings.from_task``) this reproduces its rollouts of the same angles.
     """
     paths = torch.as_tensor(paths_deg, dtype=torch.float64)
     if paths.ndim != 3 or paths.shape[-1] != 4:
@@ -78,14 +79,15 @@ def follow_paths(paths_deg, K, params: CavityParams, settings: StepSettings, *, 
         u, v = sech_fields(B, params, dtype=settings.dtype)
     else:
         u, v = u0.to(settings.dtype), v0.to(settings.dtype)
-    K = torch.as_tensor(K, dtype=torch.float64).expand(B).clone()
+    state = initial_state(u, v, torch.deg2rad(paths[:, 0]), K)
     rs, rts, us, vs = [], [], [], []
     for t in range(T):
-        u, v, n_rt = agent_step(u, v, torch.deg2rad(paths[:, t]), K, params, settings)
-        rs.append(reward_terms(u, v, params)[2].double())
-        rts.append(n_rt)
+        state, out = step_cavity(state, torch.deg2rad(paths[:, t]), params, settings.step)
+        rs.append(out.r.double())
+        rts.append(out.round_trips)
         if record_fields:
-            us.append(u)
-            vs.append(v)
+            us.append(state.u)
+            vs.append(state.v)
+    u, v = state.u, state.v
     return PathResult(torch.stack(rs, 1), u, v, torch.stack(rts, 1),
                       torch.stack(us, 1) if record_fields else None, torch.stack(vs, 1) if record_fields else None)

@@ -15,15 +15,15 @@ from laserrl.physics import CavityParams
 
 TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "init_fields", "sech_amplitude", "sech_width",
              "noise_scale", "max_steps")
-ENV_TASK_KEYS = ("max_round_trips", "tol", "dtype", "compile")  # LaserTask fields set from the env group
+ENV_TASK_KEYS = ("max_round_trips", "min_round_trips", "tol", "dtype", "compile")  # LaserTask fields set from the env group
 
 
 def make_task(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], **overrides) -> LaserTask:
     """LaserTask from the ``env`` (numerics) and ``stage`` (what is controlled) config groups;
     a bad value raises a ValueError naming its config key (``stage.K``, ``env.dtype``, ...)."""
     kwargs = {k: stage_cfg[k] for k in TASK_KEYS if k in stage_cfg}  # LaserTask takes lists as ranges
-    kwargs.update(max_round_trips=env_cfg["max_round_trips"], tol=env_cfg.get("tol"), dtype=env_cfg["dtype"],
-                  compile=env_cfg["compile"])
+    kwargs.update(max_round_trips=env_cfg["max_round_trips"], min_round_trips=env_cfg.get("min_round_trips", 2),
+                  tol=env_cfg.get("tol"), dtype=env_cfg["dtype"], compile=env_cfg["compile"])
     kwargs.update(overrides)
     try:
         return LaserTask(**kwargs)

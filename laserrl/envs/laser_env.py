@@ -1,8 +1,9 @@
 """Batched TorchRL environment of the NPR mode-locked fiber laser.
 
-The env only adapts the pure physics in ``laserrl.physics``: it keeps the batched
-cavity state (fields, angles, birefringence K), turns a discrete action into angle
-changes, runs the cavity for one agent step and reports r = E / M4.
+The env only adapts the pure agent step ``laserrl.envs.step.step``: it keeps the batched
+``CavityState`` (fields, angles, birefringence K, step count), declares the specs, samples
+initial states at reset (all cavities, or those in the ``_reset`` mask) and reports
+r = E / M4 of the state each step ends in.
 
 Observation: ``fields`` (B, 4, n) float32 = (Re u, Im u, Re v, Im v) and ``angles``
 (B, 4) in radians (alpha1, alpha2, alpha3, alpha_p), wrapped to [-pi/2, pi/2).
@@ -21,9 +22,10 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from laserrl.envs.actions import action_to_deltas, num_actions
+from laserrl.envs.actions import num_actions
+from laserrl.envs.step import CavityState, StepNumerics, observe, step, wrap_angle
 from laserrl.physics.run import CONVERGENCE_FLOOR
-from laserrl.physics import CavityParams, NonFiniteFieldError, noise_fields, reward_terms, run_to_convergence, sech_fields
+from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
 
 ANGLE_NAMES = ("alpha1", "alpha2", "alpha3", "alpha_p")
 _DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
@@ -78,6 +80,8 @@ class LaserTask:
     sech_width: float = 2.0
     noise_scale: float = 0.1
     max_round_trips: int = 500  # per agent step (paper: 500)
+    # per agent step at least: 2 lets a turn of alpha1 act within its own step (laserrl.envs.step); paper: 1
+    min_round_trips: int = 2
     # convergence tolerance per agent step; None = the finest the dtype resolves:
     # the paper's 1e-6 with complex128, 1e-5 with complex64 (see CONVERGENCE_FLOOR)
     tol: float | None = None
@@ -118,7 +122,7 @@ class LaserTask:
             value = finite_number(getattr(self, name), name)
             if not 0 < value <= largest:
                 raise ValueError(f"{name} must be > 0{f' and <= {largest:g}' if largest < math.inf else ''}, got {value!r}")
-        for name in ("max_round_trips", "max_steps"):
+        for name in ("max_round_trips", "min_round_trips", "max_steps"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
                     or int(value) != value or value < 1:
@@ -129,6 +133,15 @@ class LaserTask:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
         if finite_number(self.tol, "tol") < 0:
             raise ValueError(f"tol must be >= 0, got {self.tol!r}")
+        if self.min_round_trips > self.max_round_trips:
+            raise ValueError(f"min_round_trips ({self.min_round_trips}) must be <= max_round_trips "
+                             f"({self.max_round_trips})")
+
+    @property
+    def numerics(self) -> StepNumerics:
+        """The numerics of one agent step of this task."""
+        return StepNumerics(max_round_trips=self.max_round_trips, tol=self.tol, min_round_trips=self.min_round_trips,
+                            compile=self.compile)
 
     @property
     def controlled_index(self) -> list[int]:
@@ -137,11 +150,6 @@ class LaserTask:
     @property
     def num_actions(self) -> int:
         return num_actions(len(self.controlled))
-
-
-def wrap_angle(a: torch.Tensor) -> torch.Tensor:
-    """Wrap radians to [-pi/2, pi/2): every Jones matrix has period pi."""
-    return torch.remainder(a + math.pi / 2, math.pi) - math.pi / 2
 
 
 class LaserCavityEnv(EnvBase):
@@ -183,12 +191,11 @@ class LaserCavityEnv(EnvBase):
         self._angle_lo, self._angle_hi = torch.deg2rad(lo_hi[:, 0]), torch.deg2rad(lo_hi[:, 1])
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(seed if seed is not None else int(torch.empty((), dtype=torch.int64).random_()))
-        # physics state
-        self._u = torch.zeros(B, n, dtype=self._cdtype, device=dev)
-        self._v = torch.zeros_like(self._u)
-        self._angles = torch.zeros(B, 4, dtype=torch.float64, device=dev)
-        self._K = torch.zeros(B, dtype=torch.float64, device=dev)
-        self._step_count = torch.zeros(B, dtype=torch.int64, device=dev)
+        self._numerics = self.task.numerics
+        self.state = CavityState(
+            u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
+            angles=torch.zeros(B, 4, dtype=torch.float64, device=dev), K=torch.zeros(B, dtype=torch.float64, device=dev),
+            step_count=torch.zeros(B, dtype=torch.int64, device=dev), batch_size=[B], device=dev)
         self._make_specs()
 
     # ------------------------------------------------------------------ specs
@@ -210,13 +217,11 @@ class LaserCavityEnv(EnvBase):
 
     # ------------------------------------------------------------------ helpers
     def _observation(self, r: torch.Tensor, round_trips: torch.Tensor) -> TensorDict:
-        fields = torch.stack([self._u.real, self._u.imag, self._v.real, self._v.imag], dim=1).to(torch.float32)
         return TensorDict(
-            fields=fields,
-            angles=self._angles.to(torch.float32),
+            **observe(self.state),
             r=r.to(torch.float32).unsqueeze(-1),
             round_trips=round_trips.unsqueeze(-1),
-            step_count=self._step_count.unsqueeze(-1).clone(),
+            step_count=self.state.step_count.unsqueeze(-1).clone(),
             batch_size=self.batch_size,
             device=self.device,
         )
@@ -246,19 +251,12 @@ class LaserCavityEnv(EnvBase):
             angles = wrap_angle(tensordict.get("init_angles").to(device=self.device, dtype=torch.float64).reshape(angles.shape))
         if tensordict is not None and "init_K" in tensordict.keys():
             K = tensordict.get("init_K").to(device=self.device, dtype=torch.float64).reshape(K.shape)
-        if mask is None:
-            self._u, self._v, self._angles, self._K = u, v, angles, K
-            self._step_count = torch.zeros_like(self._step_count)
-        else:
-            # sync-free partial reset: sample for all, keep where the mask is set
-            m1 = mask[:, None]
-            self._u = torch.where(m1, u, self._u)
-            self._v = torch.where(m1, v, self._v)
-            self._angles = torch.where(m1, angles, self._angles)
-            self._K = torch.where(mask, K, self._K)
-            self._step_count = torch.where(mask, 0, self._step_count)
-        r = reward_terms(self._u, self._v, self.params)[2]
-        out = self._observation(r, torch.zeros_like(self._step_count))
+        fresh = CavityState(u=u, v=v, angles=angles, K=K, step_count=torch.zeros_like(self.state.step_count),
+                            batch_size=self.batch_size, device=self.device)
+        # sync-free partial reset: sample for all, keep where the mask is set
+        self.state = fresh if mask is None else fresh.where(mask, self.state)
+        r = reward_terms(self.state.u, self.state.v, self.params)[2]
+        out = self._observation(r, torch.zeros_like(self.state.step_count))
         out.set("done", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
         out.set("terminated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
         out.set("truncated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
@@ -266,25 +264,10 @@ class LaserCavityEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").reshape(self.batch_size)
-        deltas = action_to_deltas(action, self._steps)  # (B, m) radians
-        angles = self._angles.clone()
-        angles[:, self._ctrl_idx] = wrap_angle(angles[:, self._ctrl_idx] + deltas)
-        self._angles = angles
-        try:
-            result = run_to_convergence(self._u, self._v, angles, self._K, self.params, tol=self.task.tol,
-                                        max_round_trips=self.task.max_round_trips, compile=self.task.compile)
-        except NonFiniteFieldError as err:
-            i = err.cavities[0]
-            raise NonFiniteFieldError(
-                err.cavities,
-                f" at angles {torch.rad2deg(angles[i]).tolist()} deg and K = {float(self._K[i])} (cavity {i} of the batch)",
-            ) from None
-        self._u, self._v = result.u, result.v
-        self._step_count = self._step_count + 1
-        r = reward_terms(self._u, self._v, self.params)[2]
-        out = self._observation(r, result.round_trips)
-        out.set("reward", r.to(torch.float32).unsqueeze(-1))
-        truncated = (self._step_count >= self.task.max_steps).unsqueeze(-1)
+        self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
+        out = self._observation(measured.r, measured.round_trips)
+        out.set("reward", measured.r.to(torch.float32).unsqueeze(-1))
+        truncated = (self.state.step_count >= self.task.max_steps).unsqueeze(-1)
         out.set("truncated", truncated)
         out.set("terminated", torch.zeros_like(truncated))
         out.set("done", truncated.clone())
@@ -299,7 +282,7 @@ class LaserCavityEnv(EnvBase):
     @property
     def K(self) -> torch.Tensor:
         """Current birefringence of every cavity (hidden from the agent)."""
-        return self._K.clone()
+        return self.state.K.clone()
 
     def set_K(self, K) -> None:
         """Set the birefringence of every cavity, e.g. to model drift between steps."""
@@ -307,7 +290,7 @@ class LaserCavityEnv(EnvBase):
         K = K.expand(self.batch_size) if K.ndim == 0 else K
         if K.shape != self.batch_size or not bool(torch.isfinite(K).all()):
             raise ValueError(f"K must be finite with shape {tuple(self.batch_size)}, got {tuple(K.shape)}")
-        self._K = K.clone()
+        self.state.K = K.clone()
 
     def set_angles(self, angles) -> None:
         """Set all four angles of every cavity, (B, 4) radians (wrapped to [-pi/2, pi/2)):
@@ -315,11 +298,11 @@ class LaserCavityEnv(EnvBase):
         angles = torch.as_tensor(angles, dtype=torch.float64, device=self.device)
         if angles.shape != (*self.batch_size, 4) or not bool(torch.isfinite(angles).all()):
             raise ValueError(f"angles must be finite with shape {(*self.batch_size, 4)}, got {tuple(angles.shape)}")
-        self._angles = wrap_angle(angles.clone())
+        self.state.angles = wrap_angle(angles.clone())
 
     def fields(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Current complex fields (u, v), (B, n)."""
-        return self._u.clone(), self._v.clone()
+        return self.state.u.clone(), self.state.v.clone()
 
     def angles_deg(self) -> torch.Tensor:
-        return torch.rad2deg(self._angles)
+        return torch.rad2deg(self.state.angles)

@@ -46,8 +46,10 @@ class ConvergenceResult:
 
 
 def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e-6, max_round_trips: int = 500,
-                       active: torch.Tensor | None = None, compile: bool = False) -> ConvergenceResult:
-    """Round trips until norm(phi_j - phi_{j-1}) / norm(phi_{j-1}) < tol, per cavity.
+                       min_round_trips: int = 1, active: torch.Tensor | None = None,
+                       compile: bool = False) -> ConvergenceResult:
+    """Round trips until norm(phi_j - phi_{j-1}) / norm(phi_{j-1}) < tol, per cavity,
+    but at least ``min_round_trips`` (1: the paper's rule, which may stop after the first).
 
     complex64 fields cannot resolve tolerances below 1e-5 (``CONVERGENCE_FLOOR``);
     a smaller ``tol`` is raised to that with a warning.
@@ -59,6 +61,7 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
     Args:
         u, v: (B, n) complex fields.  angles: (B, 4) radians.  K: (B,) or scalar.
         tol: convergence tolerance (paper: 1e-6).  max_round_trips: cap (paper: 500).
+        min_round_trips: round trips before the stopping test may end a cavity's run.
         active: optional (B,) bool mask of cavities to run; others are returned unchanged.
     Returns:
         ConvergenceResult with the final fields and the round trips each cavity used.
@@ -70,6 +73,9 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
         raise ValueError(f"tol must be >= 0, got {tol!r}")
     if int(max_round_trips) != max_round_trips or max_round_trips < 1:
         raise ValueError(f"max_round_trips must be a positive integer, got {max_round_trips!r}")
+    if int(min_round_trips) != min_round_trips or not 1 <= min_round_trips <= max_round_trips:
+        raise ValueError(f"min_round_trips must be an integer in [1, max_round_trips = {max_round_trips}], "
+                         f"got {min_round_trips!r}")
     tol = effective_tolerance(tol, u.dtype)
     batch = u.shape[0]
     angles = as_batch(angles, batch, "angles", u, width=4)
@@ -91,7 +97,7 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
         u[idx], v[idx] = u_new, v_new
         count[idx] += 1
         change[idx] = delta
-        done = delta < tol
+        done = (delta < tol) & (count[idx] >= min_round_trips)
         converged[idx] = done
         running[idx] = ~done
     return ConvergenceResult(u, v, count, converged, change, tol)

@@ -402,11 +402,11 @@ def markdown(ctx, rows: list[Claim], figures: dict[str, dict], out_dir: Path, me
               + (f"{sw['max_round_trips']} round trips per step, tolerance {sw['tol']:g}" if sw else "the env's round trips per step")
               + "); each sweep starts from the sech fields settled at its first angle. A cold start settles the "
               "sech fields at each angle on its own.",
-              "- Every landscape step runs at least "
-              + (f"{sw['min_round_trips']}" if sw else "2")
+              "- Every step runs at least "
+              + (f"{sw['min_round_trips']}" if sw else "the env's minimum of")
               + " round trips: J1 (alpha1) is the last, unitary element of the round trip, so the first round "
-              "trip after turning alpha1 alone leaves |u|^2 + |v|^2 unchanged and the env's convergence check "
-              "stops a converged cavity after it; the env therefore acts on a change of alpha1 one step late.",
+              "trip after turning alpha1 alone leaves |u|^2 + |v|^2 unchanged and a stopping test after it "
+              "would show the old angle (laserrl/envs/step.py).",
               "- Physics of each model's env, as saved in its checkpoint (landscapes use the siso model's for "
               "fig. 4a and the duo model's for fig. 4b): " + "; ".join(_physics_line(m) for m in ctx.models.values()) + ".",
               "- The agents' paths are replayed through the physics with the env's exact semantics (largest "

@@ -207,14 +207,12 @@ class ReportContext:
         return producing_command(path) or f"(command not recorded: {path})"
 
     # ---------------------------------------------------------------- physics and rollouts
-    def physics(self, model: Model, env_semantics: bool):
-        """(CavityParams, StepSettings) of ``model``'s env: its exact per-step numerics if
-        ``env_semantics``, else with the landscape's ``min_round_trips``."""
-        lc = self.cfg["landscape"]
+    def physics(self, model: Model):
+        """(CavityParams, StepSettings) of ``model``'s env: its exact per-step numerics, and the
+        landscape's ``settle_round_trips``."""
         task = make_task(model.env_cfg, model.stage_cfg)
         settings = StepSettings.from_task(task, compile=self.compile,
-                                          min_round_trips=1 if env_semantics else int(lc["min_round_trips"]),
-                                          settle_round_trips=int(lc["settle_round_trips"]))
+                                          settle_round_trips=int(self.cfg["landscape"]["settle_round_trips"]))
         return make_params(model.env_cfg), settings
 
     def rollout(self, model: Model, **eval_overrides) -> dict:
@@ -230,7 +228,7 @@ class ReportContext:
         controlled = list(model.stage_cfg["controlled"])
         paths = torch.stack([full_angles(p["angle_path_deg"], controlled, p["initial_angles_deg"]) for p in per_start])
         K = torch.tensor([p["K"] for p in per_start], dtype=torch.float64)
-        params, settings = self.physics(model, env_semantics=True)
+        params, settings = self.physics(model)
         out = follow_paths(paths, K, params, settings, record_fields=record_fields)
         env_r = torch.tensor([p["reward_path"] for p in per_start], dtype=torch.float64)
         diff = float((out.r - env_r).abs().max())
@@ -267,7 +265,7 @@ class ReportContext:
         """alpha1 swept up and down (and cold starts) at the siso model's other angles and K."""
         m = self.models["siso"]
         lc = self.cfg["landscape"]
-        params, settings = self.physics(m, env_semantics=False)
+        params, settings = self.physics(m)
         values = grid(lc["alpha1_deg"], "report.landscape.alpha1_deg")
         sw = sweep("alpha1", values, m.base_deg, m.K, params, settings)
         cold = cold_landscape("alpha1", values, m.base_deg, m.K, params, settings)[0] if lc.get("cold") else None
@@ -289,10 +287,9 @@ class ReportContext:
         agent = torch.tensor(p["angle_path_deg"], dtype=torch.float64)
         straight = straight_path(start, agent[-1], agent.shape[0])
         paths4 = torch.stack([full_angles(agent, controlled, base), full_angles(straight, controlled, base)])
-        params, env_settings = self.physics(m, env_semantics=True)
-        _, settle_settings = self.physics(m, env_semantics=False)
-        out = follow_paths(paths4, m.K, params, env_settings)
-        u, v, r_settled, converged = settle(out.u, out.v, torch.deg2rad(paths4[:, -1]), m.K, params, settle_settings)
+        params, settings = self.physics(m)
+        out = follow_paths(paths4, m.K, params, settings)
+        u, v, r_settled, converged = settle(out.u, out.v, torch.deg2rad(paths4[:, -1]), m.K, params, settings)
         env_r = torch.tensor(p["reward_path"], dtype=torch.float64)
         self.numbers.setdefault("replay_max_abs_dr", {})["duo"] = float((out.r[0] - env_r).abs().max())
         self.numbers["paths"] = {"start_deg": start, "end_deg": agent[-1].tolist(), "steps": agent.shape[0], "K": m.K,
@@ -314,7 +311,7 @@ class ReportContext:
         a2 = widen(grid(lc["map_alpha2_deg"], "report.landscape.map_alpha2_deg"), float(both[:, 1].min()), float(both[:, 1].max()))
         rows = torch.tensor(m.base_deg, dtype=torch.float64).repeat(a2.numel(), 1)
         rows[:, ANGLE_NAMES.index("alpha2")] = a2
-        params, settings = self.physics(m, env_semantics=False)
+        params, settings = self.physics(m)
         sw = sweep("alpha1", a1, rows, m.K, params, settings)
         self.numbers["alpha_map"] = {"alpha2_deg": a2.tolist(), **sw.to_dict()}
         return {"sweep": sw, "alpha2": a2}

@@ -233,7 +233,7 @@ def test_reward_is_r_of_the_new_state():
 def test_nan_field_names_the_cavity():
     env = LaserCavityEnv(batch_size=3, seed=0, **FAST)
     td = env.reset()
-    env._u[1] = float("nan")
+    env.state.u[1] = float("nan")
     with pytest.raises(NonFiniteFieldError, match=r"cavity 1\b") as info:
         step(env, td, [1, 1, 1])
     assert info.value.cavities == [1]
