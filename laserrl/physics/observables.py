@@ -10,10 +10,15 @@ from __future__ import annotations
 
 import torch
 
-from laserrl.physics.cavity import check_fields, trapezoid_energy
+from laserrl.physics.checks import check_fields
 from laserrl.physics.params import CavityParams
 
-__all__ = ["amplitude", "reward_terms", "convergence"]
+__all__ = ["amplitude", "reward_terms", "convergence", "trapezoid_energy"]
+
+
+def trapezoid_energy(power: torch.Tensor, dt: float) -> torch.Tensor:
+    """Trapezoid rule over the last axis of the n samples (not a periodic sum)."""
+    return dt * (power.sum(-1) - 0.5 * (power[..., 0] + power[..., -1]))
 
 
 def amplitude(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

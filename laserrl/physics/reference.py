@@ -11,8 +11,8 @@ then applies J1 JP J2 J3. The integrator is the one the paper's public code call
 Hairer's Fortran DOP853 through ``scipy.integrate.ode`` ("dop853"), restarted every
 round trip. That code sets no tolerances, so it runs at that integrator's defaults,
 ``PAPER_RTOL`` = 1e-6 and ``PAPER_ATOL`` = 1e-12, which are also the defaults here.
-(At ``solve_ivp``'s looser defaults, rtol 1e-3 and atol 1e-6, it is about 1.2x faster on
-this model and 3.5e-5 instead of 1.3e-9 from the stored high-accuracy solutions.)
+(At ``solve_ivp``'s looser defaults, rtol 1e-3 and atol 1e-6, it is 3.5e-5 instead of
+1.3e-9 from the stored high-accuracy solutions.)
 """
 from __future__ import annotations
 

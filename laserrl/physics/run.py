@@ -7,7 +7,8 @@ import warnings
 
 import torch
 
-from laserrl.physics.cavity import NonFiniteFieldError, _round_trip, as_batch, check_fields, check_finite
+from laserrl.physics.cavity import _round_trip
+from laserrl.physics.checks import NonFiniteFieldError, as_batch, check_fields, check_finite
 from laserrl.physics.observables import convergence
 from laserrl.physics.params import CavityParams
 

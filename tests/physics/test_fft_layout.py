@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from laserrl.physics.cavity import _pack_bits, _unpack_bits, fft_bits, fft_planar
+from laserrl.physics.fft_layout import _pack_bits, _unpack_bits, fft_bits, fft_planar
 
 SPECIAL = [0.0, -0.0, 1.0, -1.5, 1e-42, -1e-42, 3.4e38, -3.4e38, math.inf, -math.inf, math.nan]
 

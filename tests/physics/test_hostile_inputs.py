@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from laserrl.physics import CavityParams, NonFiniteFieldError, propagate, reward_terms, round_trip, run_to_convergence, sech_fields
-from laserrl.physics.cavity import MAX_PEAK_POWER
+from laserrl.physics.checks import MAX_PEAK_POWER
 
 P = CavityParams(n=64)
 NAN, INF = float("nan"), float("inf")

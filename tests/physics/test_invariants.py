@@ -133,7 +133,7 @@ def test_swapping_u_v_and_negating_K_commutes_with_propagate(ref_cases, params, 
 
 @pytest.mark.filterwarnings("ignore:Torchinductor does not support code generation for complex operators")
 def test_compiled_propagate_equals_eager(ref_cases, params, rel_err):
-    """The only test with compile=True (one-off compilation of tens of seconds)."""
+    """The only test with compile=True (compilation is a one-off cost per process)."""
     cases = [ref_cases[n] for n in ("siso_modelock", "noise_start")]
     u = torch.as_tensor(np.stack([c.u[2] for c in cases])).to(torch.complex64)
     v = torch.as_tensor(np.stack([c.v[2] for c in cases])).to(torch.complex64)
