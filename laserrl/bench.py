@@ -15,7 +15,7 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
   (``fft_pairs_per_round_trip``: one inverse and one forward FFT of both fields per
   Strang step, or per DOP853 stage);
 * accuracy: worst relative L2 error of one round trip against the stored
-  high-accuracy reference solutions (``tests/data/cavity_reference.npz``);
+  high-accuracy reference solutions (``laserrl/data/cavity_reference.npz``);
 * with ``--processes N``: the whole machine, N processes of one torch thread each
   stepping their own batch at the same time (how the training collectors use a
   multi-core CPU), and for comparison N scipy reference processes at the same time.
@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from laserrl.paths import REFERENCE_DATA
 from laserrl.physics import CavityParams, round_trip, sech_fields
 from laserrl.physics import reference as ref
 from laserrl.physics.cavity import fft_pairs_per_round_trip
@@ -44,10 +45,9 @@ PAPER_ANGLES_DEG = (-24.0, 3.0, 28.0, 88.0)
 
 
 def _reference_data() -> dict | None:
-    here = Path(__file__).resolve().parent.parent / "tests" / "data" / "cavity_reference.npz"
-    if not here.exists():
+    if not REFERENCE_DATA.exists():
         return None
-    with np.load(here) as d:
+    with np.load(REFERENCE_DATA) as d:
         return {k: d[k] for k in d.files}
 
 

@@ -18,20 +18,15 @@ import json
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_actor, make_qnet
 from laserrl.checkpoint import CheckpointError, load_checkpoint
-from laserrl.config import ConfigError, user_errors
+from laserrl.config import ConfigError
 from laserrl.envs.factory import make_env
 from laserrl.envs.laser_env import ANGLE_NAMES
-
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
-
 
 def load_qnet(state: Mapping[str, Any], action_spec):
     """Rebuild the Q-network of a checkpoint for an env with ``action_spec``."""
@@ -300,28 +295,3 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
                                for name, rule in rules.items()}}
     write_eval(result, out_dir, eval_cfg.get("plots", True), kind="generalisation")
     return result
-
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
-def _hydra_main(cfg: DictConfig) -> float:
-    with user_errors("laserrl-eval"):
-        stage = OmegaConf.to_container(cfg.stage, resolve=True) if cfg.get("stage") else None
-        eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
-        if cfg.get("bank"):
-            bank = OmegaConf.to_container(cfg.bank, resolve=True) if OmegaConf.is_list(cfg.bank) else cfg.bank
-            if not isinstance(bank, list):
-                raise ConfigError(f"bank: give a list of checkpoints, e.g. bank=[K0.pt,[K0.2_seed0.pt,K0.2_seed1.pt]], got {bank!r}")
-            result = evaluate_bank(bank, eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None)
-            return float(result["grid_success"]["max_q"])
-        if cfg.checkpoint is None or cfg.checkpoint == "":
-            raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH (or bank=[PATH,...])")
-        result = evaluate_checkpoint(cfg.checkpoint, eval_cfg, cfg.run_dir, stage)
-    return float(result["success_rate"])
-
-
-def main() -> None:
-    _hydra_main()
-
-
-if __name__ == "__main__":
-    main()

@@ -12,7 +12,8 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from laserrl.config import ConfigError
-from laserrl.train import CONF_DIR, train
+from laserrl.paths import CONF_DIR
+from laserrl.train import train
 
 
 def run_curriculum(cfg: DictConfig) -> dict:

@@ -2,7 +2,6 @@
 trajectories with angle paths (paper fig. 3)."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import matplotlib

@@ -1,7 +1,10 @@
 """``laserrl-train``: double DQN on the batched laser env, configured by Hydra.
 
-Read top to bottom: build the env, the Q-network and TorchRL's DQN parts, collect
-with a TorchRL collector, learn from (prioritized) replay, checkpoint, evaluate.
+Read ``train`` top to bottom: seed, build the agent (``DQNAgent``: TorchRL's DQN parts) and
+its replay, restore a checkpoint when resuming, then collect batches with a TorchRL
+collector, store them, take gradient steps (``DQNAgent.update``), log (``batch_record``),
+evaluate now and then (``greedy_success``) and checkpoint (``save_run``); ``finish``
+evaluates the final checkpoint. The Hydra entry point is ``laserrl.cli``.
 
     laserrl-train                                  # paper's single-input task, K = 0.1
     laserrl-train optim.lr=3e-4 env.num_envs=64    # any value from the command line
@@ -13,60 +16,47 @@ from __future__ import annotations
 import dataclasses
 import math
 import random
-import sys
 import time
 from functools import partial
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from laserrl.agents.dqn import (EpsilonSchedule, make_actor, make_exploration_policy, make_loss, make_n_step,
-                                make_qnet, make_replay, make_target_updater)
+from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
 from laserrl.checkpoint import save_json
-from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, optim_lr_decay, user_errors
+from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, optim_lr_decay
 from laserrl.envs.factory import make_env
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
+    """The double DQN of the ``agent`` and ``optim`` config for an env with ``action_spec``."""
+    decay, decay_updates = optim_lr_decay(cfg)
+    return DQNAgent.build(action_spec, int(cfg.env.physics.n), network=cfg.agent.network,
+                          exploration=dict(cfg.agent.exploration), gamma=cfg.agent.gamma,
+                          loss_function=cfg.agent.loss_function, target=dict(cfg.agent.target), lr=cfg.optim.lr,
+                          weight_decay=cfg.optim.weight_decay, lr_decay=decay, lr_decay_updates=decay_updates,
+                          max_grad_norm=cfg.optim.max_grad_norm, prioritized=cfg.replay.kind == "prioritized")
 
 
-def build_agent(cfg: DictConfig, env):
-    """Q-network, greedy actor, exploration policy, loss and target updater."""
-    spec = env.action_spec_unbatched
-    net = cfg.agent.network
-    qnet = make_qnet(int(spec.n), cfg.env.physics.n, net.channels, net.kernel_size, net.pool, net.hidden,
-                     net.negative_slope)
-    actor = make_actor(qnet, spec)
-    schedule = EpsilonSchedule(**cfg.agent.exploration)
-    policy, egreedy = make_exploration_policy(actor, spec, schedule)
-    loss = make_loss(actor, spec, cfg.agent.gamma, cfg.agent.loss_function)
-    target = make_target_updater(loss, **cfg.agent.target)
-    return qnet, actor, policy, egreedy, schedule, loss, target
+def seed_everything(cfg: DictConfig) -> None:
+    """The same seed gives the same run on CPU: torch (networks, exploration, uniform replay) and
+    numpy (TorchRL's prioritized sampler draws with np.random); the envs seed their own generators."""
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(int(cfg.threads))
 
 
-def agent_state(loss, lr_schedule, egreedy, target) -> dict:
-    """What learning needs beyond the Q-network and the optimizer: the loss module (online and
-    target network), the learning-rate schedule, the exploration module's epsilon and a hard
-    target update's counter."""
-    return {"loss": loss.state_dict(), "lr_schedule": lr_schedule.state_dict(), "egreedy": egreedy.state_dict(),
-            "target_counter": getattr(target, "counter", None)}
-
-
-def load_agent_state(state: dict, loss, optimizer, lr_schedule, egreedy, target) -> None:
-    loss.load_state_dict(state["resume"]["agent"]["loss"])
-    optimizer.load_state_dict(state["optimizer"])
-    if state["resume"]["agent"].get("lr_schedule") is not None:
-        lr_schedule.load_state_dict(state["resume"]["agent"]["lr_schedule"])
-    else:  # a checkpoint from before the schedule existed: its rate was constant; count on from its updates
-        lr_schedule.last_epoch = int(state["updates"])
-    egreedy.load_state_dict(state["resume"]["agent"]["egreedy"])
-    if state["resume"]["agent"]["target_counter"] is not None:
-        target.counter = state["resume"]["agent"]["target_counter"]
+def action_spec_of(cfg: DictConfig):
+    """The unbatched action spec of the config's env (built once, for one cavity)."""
+    env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
+                   1, cfg.seed, cfg.device)
+    return env.action_spec_unbatched
 
 
 def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0):
@@ -104,14 +94,67 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0):
     return cls([env_fn] * int(cfg.collector.num_workers), policy, **common, **no_policy_transforms)
 
 
-def periodic_eval(cfg: DictConfig, actor) -> float:
-    """Success rate of the greedy actor under the evaluation protocol (no plots, no files)."""
+def greedy_success(cfg: DictConfig, actor, frames: int, logger) -> float:
+    """Periodic evaluation: the success rate of the greedy actor under the stage's protocol
+    (no plots, no files), logged as ``eval/success_rate`` at ``frames``."""
     from laserrl.evaluate import evaluate_policy
 
     eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), "plots": False}
     result = evaluate_policy(lambda env: actor, OmegaConf.to_container(cfg.env, resolve=True),
                              OmegaConf.to_container(cfg.stage, resolve=True), eval_cfg, int(cfg.seed))
-    return float(result["success_rate"])
+    success = float(result["success_rate"])
+    if logger is not None:
+        logger.log_scalar("eval/success_rate", success, step=frames)
+    tqdm.write(f"frames {frames}: eval success rate {success:.2f}")
+    return success
+
+
+def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig, logger, started: float,
+             with_replay: bool = True) -> Path:
+    """Checkpoint the run as it stands (with the replay buffer unless ``with_replay`` is false)
+    and rewrite its history.json; returns the checkpoint path."""
+    run.train_seconds = time.perf_counter() - started
+    path = saver.save({
+        "qnet": agent.qnet.state_dict(), "target": agent.target_weights(), "optimizer": agent.optimizer.state_dict(),
+        "epsilon": float(agent.egreedy.eps), "frames": run.frames, "updates": run.updates,
+        "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
+                   "logger": logger.state_dict() if logger is not None else None},
+    }, with_replay)
+    save_json(run.history, Path(cfg.run_dir) / "history.json")
+    return path
+
+
+def store(replay, n_step, data) -> None:
+    """Put a collected batch into replay, as n-step transitions when ``n_step`` is set (their
+    first n steps wait in the transform until their returns are complete)."""
+    transitions = data if n_step is None else n_step.inv(data)
+    if transitions is not None:
+        replay.extend(transitions.reshape(-1))
+
+
+def batch_record(data, run: RunCounters, agent: DQNAgent, started: float, t_batch: float) -> dict:
+    """The metrics of one batch: raw r (not the centred training reward) and the final r of the
+    episodes that ended in it."""
+    r, done = data["next", "r"], data["next", "done"]
+    record = {
+        "frames": run.frames, "updates": run.updates, "time_s": time.perf_counter() - started,
+        "train/r_mean": float(r.mean()), "train/loss": run.last_loss, "train/epsilon": float(agent.egreedy.eps),
+        "train/lr": agent.lr, "train/round_trips_per_step": float(data["next", "round_trips"].float().mean()),
+    }
+    if bool(done.any()):
+        record["train/episode_final_r"] = run.last_episode_r = float(r[done].mean())
+    record["time/learn_s"] = time.perf_counter() - t_batch
+    return record
+
+
+def log_record(logger, record: dict, frames: int) -> None:
+    if logger is None:
+        return
+    for key, value in record.items():
+        if "/" in key and math.isfinite(value):
+            logger.log_scalar(key, value, step=frames)
 
 
 def train(cfg: DictConfig, resume: dict | None = None) -> dict:
@@ -124,39 +167,25 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     """
     check_train_config(cfg)
     run_dir = Path(cfg.run_dir)
-    # the same seed gives the same run on CPU: torch (networks, exploration, uniform replay)
-    # and numpy (TorchRL's prioritized sampler draws with np.random); the envs seed their own generators
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
-    if cfg.threads:
-        torch.set_num_threads(int(cfg.threads))
+    seed_everything(cfg)
     started = time.perf_counter()
 
-    # --- env (only to read specs here; the collector builds its own) and agent
-    probe_env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
-                         1, cfg.seed, cfg.device)
-    qnet, actor, policy, egreedy, schedule, loss, target = build_agent(cfg, probe_env)
-    del probe_env
+    # --- the agent, its replay and n-step transform
+    agent = build_agent(cfg, action_spec_of(cfg))
     if cfg.init_from and resume is None:
         from laserrl.warmstart import warm_start
 
-        warm_start(qnet, cfg.init_from, list(cfg.stage.controlled))
-        target.init_()  # the target network starts from the warm-started weights
-    optimizer = torch.optim.Adam(loss.parameters(), lr=cfg.optim.lr, weight_decay=cfg.optim.weight_decay)
-    # stepped once per gradient update: lr * lr_decay ** (updates // lr_decay_updates)
-    decay, decay_updates = optim_lr_decay(cfg)
-    lr_schedule = torch.optim.lr_scheduler.StepLR(optimizer, step_size=int(decay_updates), gamma=float(decay))
+        warm_start(agent.qnet, cfg.init_from, list(cfg.stage.controlled))
+        agent.target.init_()  # the target network starts from the warm-started weights
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
-    # n-step returns: batches become n-step transitions before they are stored (None: one-step TD)
-    n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))
+    n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))  # None: one-step TD
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
     run = RunCounters(next_eval=cfg.train.get("eval_every_frames") or math.inf)
     if resume is not None:
         run = RunCounters(**resume["resume"]["counters"])
         run.resumed_at_frames.append(run.frames)
-        load_agent_state(resume, loss, optimizer, lr_schedule, egreedy, target)
+        agent.load_learning_state(resume["resume"]["agent"], resume["optimizer"], resume["updates"])
         load_replay(replay, resume)
         started -= run.train_seconds  # train.max_minutes counts the run's earlier invocations too
         print(f"resuming {run_dir} at {run.frames} frames, {run.updates} updates ({len(replay)} transitions in replay)")
@@ -164,42 +193,17 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     logger = make_logger(cfg, run_dir, resume["resume"]["logger"] if resume else None, run.frames)
     if logger is not None:
         log_config(logger, cfg)
+    save = partial(save_run, saver, agent, run, cfg, logger, started)
 
-    def save(with_replay: bool = True) -> Path:
-        """Checkpoint (with the replay buffer) and history.json of the run as it stands."""
-        run.train_seconds = time.perf_counter() - started
-        path = saver.save({
-            "qnet": qnet.state_dict(),
-            "target": target.loss_module.target_value_network_params.state_dict() if hasattr(target.loss_module, "target_value_network_params") else None,
-            "optimizer": optimizer.state_dict(),
-            "epsilon": float(egreedy.eps), "frames": run.frames, "updates": run.updates,
-            "num_actions": qnet.num_actions, "stage": cfg.stage.name,
-            "config": OmegaConf.to_container(cfg, resolve=True),
-            "resume": {"agent": agent_state(loss, lr_schedule, egreedy, target), "counters": dataclasses.asdict(run),
-                       "rng": rng_state(), "logger": logger.state_dict() if logger is not None else None},
-        }, with_replay)
-        save_json(run.history, run_dir / "history.json")
-        return path
-
-    # --- loop: collect a batch, learn from replay, log, checkpoint now and then
+    # --- budgets: frames decide; train.max_minutes is a safety net
     eval_every = cfg.train.get("eval_every_frames")
     every = cfg.train.get("checkpoint_every_frames")
     next_checkpoint = (run.frames // every + 1) * every if every else math.inf
     max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
-    bar = tqdm(total=cfg.train.total_frames, initial=run.frames, unit="frames", disable=not cfg.train.progress,
-               dynamic_ncols=True)
     target_rate = cfg.train.get("stop_at_success")
-
-    def greedy_success(at_frames: int) -> float:
-        success = periodic_eval(cfg, actor)
-        if logger is not None:
-            logger.log_scalar("eval/success_rate", success, step=at_frames)
-        tqdm.write(f"frames {at_frames}: eval success rate {success:.2f}")
-        return success
-
     if eval_every and target_rate is not None and resume is None:
         # a warm-started policy may already meet the target: then it needs no frames at all
-        success = greedy_success(0)
+        success = greedy_success(cfg, agent.actor, 0, logger)
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
         if success >= target_rate:
             run.frames_to_success = 0
@@ -208,9 +212,13 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         tqdm.write(f"train.max_minutes={cfg.train.max_minutes} already used by this run; raise it to train on")
     # a resumed run's envs start new episodes (their mid-episode state is not saved), seeded from (seed, frames)
     collector = (None if run.frames_to_success is not None or out_of_time
-                 else make_collector(cfg, policy, env_seed(cfg.seed, run.frames), run.frames))
+                 else make_collector(cfg, agent.policy, env_seed(cfg.seed, run.frames), run.frames))
     if resume is not None:
         set_rng_state(resume["resume"]["rng"])  # the global generators continue from the checkpoint
+
+    # --- the loop: collect a batch, store it, learn from replay, log, evaluate and checkpoint now and then
+    bar = tqdm(total=cfg.train.total_frames, initial=run.frames, unit="frames", disable=not cfg.train.progress,
+               dynamic_ncols=True)
     between_batches = True  # the state is that of whole batches: a checkpoint of it is consistent
     try:
         with StopSignals(tqdm.write) as stop:
@@ -218,50 +226,22 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 between_batches = False
                 t_batch = time.perf_counter()
                 run.frames += data.numel()
-                transitions = data if n_step is None else n_step.inv(data)
-                if transitions is not None:  # (the first n steps of an n-step run wait for their returns)
-                    replay.extend(transitions.reshape(-1))
-                egreedy.eps.fill_(schedule(run.frames))
+                store(replay, n_step, data)
+                agent.explore(run.frames)
                 if run.frames >= cfg.replay.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
-                    n_updates = max(1, int(round(data.numel() * cfg.optim.updates_per_frame)))
-                    for _ in range(n_updates):
-                        sample = replay.sample()
-                        losses = loss(sample)
-                        optimizer.zero_grad(set_to_none=True)
-                        losses["loss"].backward()
-                        torch.nn.utils.clip_grad_norm_(loss.parameters(), cfg.optim.max_grad_norm)
-                        optimizer.step()
-                        lr_schedule.step()
-                        target.step()
-                        if cfg.replay.kind == "prioritized":
-                            replay.update_tensordict_priority(sample)
+                    for _ in range(max(1, int(round(data.numel() * cfg.optim.updates_per_frame)))):
+                        run.last_loss = agent.update(replay)
                         run.updates += 1
-                        run.last_loss = float(losses["loss"].detach())
                 collector.update_policy_weights_()
-
-                # metrics: raw r (not the centred training reward), final r of finished episodes
-                r = data["next", "r"]
-                done = data["next", "done"]
-                record = {
-                    "frames": run.frames, "updates": run.updates, "time_s": time.perf_counter() - started,
-                    "train/r_mean": float(r.mean()), "train/loss": run.last_loss, "train/epsilon": float(egreedy.eps),
-                    "train/lr": float(optimizer.param_groups[0]["lr"]),
-                    "train/round_trips_per_step": float(data["next", "round_trips"].float().mean()),
-                }
-                if bool(done.any()):
-                    record["train/episode_final_r"] = run.last_episode_r = float(r[done].mean())
-                record["time/learn_s"] = time.perf_counter() - t_batch
+                record = batch_record(data, run, agent, started, t_batch)
                 run.history.append(record)
-                if logger is not None:
-                    for key, value in record.items():
-                        if "/" in key and math.isfinite(value):
-                            logger.log_scalar(key, value, step=run.frames)
+                log_record(logger, record, run.frames)
                 between_batches = True
                 bar.update(data.numel())
                 bar.set_postfix(ep_r=f"{run.last_episode_r:.3f}", r=f"{record['train/r_mean']:.3f}",
                                 eps=f"{record['train/epsilon']:.2f}", refresh=False)
                 if run.frames >= run.next_eval:  # greedy evaluation during training (the stage's protocol)
-                    success = record["eval/success_rate"] = greedy_success(run.frames)
+                    success = record["eval/success_rate"] = greedy_success(cfg, agent.actor, run.frames, logger)
                     run.next_eval += eval_every
                     if target_rate is not None and success >= target_rate:
                         run.frames_to_success = run.frames
@@ -288,8 +268,14 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))
     ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
+    summary = finish(cfg, run, ckpt_path, logger, started)
+    print(f"checkpoint: {ckpt_path}")
+    return summary
 
-    # --- evaluate, plot
+
+def finish(cfg: DictConfig, run: RunCounters, ckpt_path: Path, logger, started: float) -> dict:
+    """After training: evaluate the checkpoint with the stage's protocol, plot, write summary.json."""
+    run_dir = Path(cfg.run_dir)
     summary = {"train_seconds": run.train_seconds, "frames": run.frames, "updates": run.updates,
                "checkpoint": str(ckpt_path), "frames_to_success": run.frames_to_success}
     if run.resumed_at_frames:
@@ -311,7 +297,6 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     save_json(summary, run_dir / "summary.json", indent=2)
     if logger is not None and hasattr(logger, "experiment") and cfg.logger.backend == "wandb":
         logger.experiment.finish()
-    print(f"checkpoint: {ckpt_path}")
     return summary
 
 
@@ -322,32 +307,3 @@ def resume_run(cfg: DictConfig) -> dict:
 
     state = load_run(cfg.resume)
     return train(resume_config(cfg, state, HydraConfig.get().overrides.task), resume=state)
-
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="config")
-def _hydra_main(cfg: DictConfig) -> float:
-    from laserrl.experiments import run_curriculum, run_transfer
-
-    try:
-        with user_errors("laserrl-train"):
-            if cfg.get("resume"):
-                summary = resume_run(cfg)
-            elif cfg.get("curriculum"):
-                summary = run_curriculum(cfg)
-            elif cfg.get("transfer"):
-                summary = run_transfer(cfg)
-            else:
-                summary = train(cfg)
-    except RunInterrupted as stop:
-        print(f"laserrl-train: {stop}", file=sys.stderr)
-        sys.exit(128 + stop.signum)
-    metric = summary.get(cfg.metric)
-    return float(metric) if metric is not None else float("nan")
-
-
-def main() -> None:
-    _hydra_main()
-
-
-if __name__ == "__main__":
-    main()

@@ -3,15 +3,15 @@ from __future__ import annotations
 
 import ast
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from laserrl.paths import REFERENCE_DATA
 from laserrl.physics import CavityParams
 
-DATA = Path(__file__).parent / "data" / "cavity_reference.npz"
+DATA = REFERENCE_DATA
 # The suite runs small batches (a few cavities of 256 samples): intra-op threading only
 # adds synchronisation cost there, and on a loaded 2-core machine a multi-threaded FFT
 # of a tiny array can take milliseconds instead of microseconds.

@@ -18,8 +18,9 @@ from laserrl.config import ConfigError, check_train_config
 from laserrl.envs.factory import make_env
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.physics import NonFiniteFieldError
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
+CONF = Path(CONF_DIR)
 
 
 def _compose(overrides):

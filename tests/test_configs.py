@@ -7,8 +7,9 @@ from omegaconf import OmegaConf
 
 from laserrl.config import check_train_config
 from laserrl.envs.factory import make_params, make_task
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
+CONF = Path(CONF_DIR)
 # groups of laserrl-control (conf/control.yaml) compose there: tests/control/test_app.py
 CONTROL_GROUPS = ("controller", "scenario")
 GROUPS = {g.name: sorted(p.stem for p in g.glob("*.yaml")) for g in CONF.iterdir()

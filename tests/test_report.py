@@ -16,8 +16,9 @@ from laserrl.report.claims import REQUIRED
 from laserrl.report.context import grid, widen
 from laserrl.report.figures import FIGURES
 from laserrl.report.spot import as_overrides
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
+CONF = Path(CONF_DIR)
 
 # every model trained on the spot in seconds: tiny physics, few frames, 3-step protocols
 TINY = [

@@ -21,8 +21,9 @@ from laserrl.agents.dqn import make_replay
 from laserrl.checkpoint import CheckpointError
 from laserrl.config import ConfigError
 from laserrl.resume import RunSaver, load_replay, load_run, resume_config
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parent.parent / "conf"
+CONF = Path(CONF_DIR)
 # a real run, as cheap as it gets: 10 batches of one step of 32 cavities, 2 round trips per step
 TINY = ["experiment=smoke", "env.physics.n=64", "env.physics.z_steps=1", "env.max_round_trips=2", "env.num_envs=32",
         "threads=1", "train.progress=false", "logger.backend=csv", "train.total_frames=320",

@@ -1,5 +1,5 @@
-"""Sweep configs in sweeps/: they compose, sweep real config keys, and run with -m
-(Optuna, seeds) and with Hydra's submitit launcher."""
+"""Sweep configs (laserrl/conf/sweep, also reachable as sweeps/ in a checkout): they compose,
+sweep real config keys, and run with -m (Optuna, seeds) and with Hydra's submitit launcher."""
 import json
 import subprocess
 import sys
@@ -10,10 +10,12 @@ import yaml
 from hydra import compose, initialize_config_dir
 
 from laserrl.config import check_train_config
+from laserrl.paths import CONF_DIR
 
 ROOT = Path(__file__).resolve().parent.parent
-CONF = ROOT / "conf"
-SWEEPS = ROOT / "sweeps"
+CONF = Path(CONF_DIR)
+SWEEPS = CONF / "sweep"
+WANDB_SWEEPS = sorted(SWEEPS.glob("wandb/*.yaml"))
 SMOKE = ["experiment=smoke", "env.physics.n=64", "env.physics.z_steps=2", "train.progress=false"]
 
 
@@ -29,8 +31,12 @@ def _sample(spec: str):
     return int(low) if spec.startswith(("int(", "range(")) or (spec.startswith("choice(") and low.is_integer()) else low
 
 
-def test_conf_sweep_is_the_sweeps_folder():
-    assert (CONF / "sweep").resolve() == SWEEPS.resolve()
+def test_the_checkouts_sweeps_folder_is_the_packaged_sweep_group():
+    assert (ROOT / "sweeps").resolve() == SWEEPS.resolve()
+
+
+def test_the_wandb_sweep_the_readme_names_exists():
+    assert [p.name for p in WANDB_SWEEPS] == ["ddqn.yaml"]
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in SWEEPS.glob("*.yaml")))
@@ -50,7 +56,7 @@ def test_optuna_sweep_maximises_the_returned_metric():
     assert cfg.hydra.sweeper.storage is None  # in-memory: optuna < 3 with sqlalchemy 2
 
 
-@pytest.mark.parametrize("path", sorted(SWEEPS.glob("wandb/*.yaml")))
+@pytest.mark.parametrize("path", WANDB_SWEEPS or [SWEEPS / "wandb" / "ddqn.yaml"])
 def test_wandb_sweeps_drive_the_hydra_app(path):
     spec = yaml.safe_load(path.read_text())
     assert "${args_no_hyphens}" in spec["command"] and spec["program"] == "laserrl-train"

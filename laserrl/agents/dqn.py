@@ -116,3 +116,93 @@ def make_n_step(n_steps: int, gamma: float) -> MultiStepTransform | None:
     if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"agent.n_steps must be an integer >= 1, got {n_steps!r}")
     return MultiStepTransform(n_steps, gamma) if n_steps > 1 else None
+
+
+@dataclass
+class DQNAgent:
+    """The learning parts of a double DQN and one gradient update of them.
+
+    ``qnet`` is the Q-network, ``actor`` its greedy ``QValueActor``, ``policy`` the actor
+    followed by ``egreedy`` (epsilon set from ``schedule``), ``loss`` TorchRL's ``DQNLoss``
+    (online and delayed target network), ``target`` its soft or hard updater, and
+    ``optimizer`` / ``lr_schedule`` Adam with a step-wise learning-rate decay.
+    """
+
+    qnet: FieldQNet
+    actor: QValueActor
+    policy: TensorDictSequential
+    egreedy: EGreedyModule
+    schedule: EpsilonSchedule
+    loss: DQNLoss
+    target: SoftUpdate | HardUpdate
+    optimizer: torch.optim.Optimizer
+    lr_schedule: torch.optim.lr_scheduler.StepLR
+    max_grad_norm: float
+    prioritized: bool
+
+    @classmethod
+    def build(cls, action_spec, n: int, *, network, exploration, gamma: float, loss_function: str, target,
+              lr: float, weight_decay: float, lr_decay: float, lr_decay_updates: int, max_grad_norm: float,
+              prioritized: bool) -> "DQNAgent":
+        """The agent for an env with ``action_spec`` (unbatched) and ``n`` field samples; the
+        keyword groups are the ``agent`` and ``optim`` config entries."""
+        qnet = make_qnet(int(action_spec.n), n, network["channels"], network["kernel_size"], network["pool"],
+                         network["hidden"], network["negative_slope"])
+        actor = make_actor(qnet, action_spec)
+        schedule = EpsilonSchedule(**exploration)
+        policy, egreedy = make_exploration_policy(actor, action_spec, schedule)
+        loss = make_loss(actor, action_spec, gamma, loss_function)
+        updater = make_target_updater(loss, **target)
+        optimizer = torch.optim.Adam(loss.parameters(), lr=lr, weight_decay=weight_decay)
+        # stepped once per gradient update: lr * lr_decay ** (updates // lr_decay_updates)
+        lr_schedule = torch.optim.lr_scheduler.StepLR(optimizer, step_size=int(lr_decay_updates), gamma=float(lr_decay))
+        return cls(qnet, actor, policy, egreedy, schedule, loss, updater, optimizer, lr_schedule, float(max_grad_norm),
+                   bool(prioritized))
+
+    def explore(self, frames: int) -> float:
+        """Set epsilon for ``frames`` collected so far; returns it."""
+        self.egreedy.eps.fill_(self.schedule(frames))
+        return float(self.egreedy.eps)
+
+    def update(self, replay) -> float:
+        """One gradient step on a batch sampled from ``replay``, then the target update (and,
+        for prioritized replay, the new priorities); returns the loss."""
+        sample = replay.sample()
+        losses = self.loss(sample)
+        self.optimizer.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.max_grad_norm)
+        self.optimizer.step()
+        self.lr_schedule.step()
+        self.target.step()
+        if self.prioritized:
+            replay.update_tensordict_priority(sample)
+        return float(losses["loss"].detach())
+
+    @property
+    def lr(self) -> float:
+        return float(self.optimizer.param_groups[0]["lr"])
+
+    def target_weights(self) -> dict | None:
+        """The target network's weights (for the checkpoint)."""
+        params = getattr(self.loss, "target_value_network_params", None)
+        return params.state_dict() if params is not None else None
+
+    def learning_state(self) -> dict:
+        """What learning needs beyond the Q-network and the optimizer: the loss module (online and
+        target network), the learning-rate schedule, epsilon and a hard target update's counter."""
+        return {"loss": self.loss.state_dict(), "lr_schedule": self.lr_schedule.state_dict(),
+                "egreedy": self.egreedy.state_dict(), "target_counter": getattr(self.target, "counter", None)}
+
+    def load_learning_state(self, state: dict, optimizer_state: dict, updates: int) -> None:
+        """Continue from ``learning_state()`` and the optimizer's state of a checkpoint made after
+        ``updates`` gradient updates."""
+        self.loss.load_state_dict(state["loss"])
+        self.optimizer.load_state_dict(optimizer_state)
+        if state.get("lr_schedule") is not None:
+            self.lr_schedule.load_state_dict(state["lr_schedule"])
+        else:  # a checkpoint without a saved schedule had a constant rate: count on from its updates
+            self.lr_schedule.last_epoch = int(updates)
+        self.egreedy.load_state_dict(state["egreedy"])
+        if state["target_counter"] is not None:
+            self.target.counter = state["target_counter"]

@@ -15,7 +15,6 @@ All rows of a grid and both sweep directions run as one batch of cavities.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Sequence
 

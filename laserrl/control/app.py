@@ -16,13 +16,12 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
-import hydra
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from laserrl.checkpoint import load_checkpoint
-from laserrl.config import ConfigError, _number, user_errors
+from laserrl.config import ConfigError, _number
 from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillClimbParams, RandomSearch, RandomSearchParams
 from laserrl.control.esc import ESCParams, ExtremumSeeking
 from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
@@ -31,7 +30,6 @@ from laserrl.control.plant import CavityPlant
 from laserrl.control.scenarios import Scenario
 from laserrl.envs.laser_env import ANGLE_NAMES
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent.parent / "conf")
 #: ``controller=all`` runs these, in this order
 ALL = ("random_search", "hill_climb", "ga", "esc", "rl", "hybrid")
 NEEDS_CHECKPOINT = ("rl", "hybrid")
@@ -259,17 +257,3 @@ def sweep_metric(out: dict, cfg: DictConfig) -> float:
     name = cfg.metric_controller if len(names) > 1 else names[0]
     value = out["results"][name]["summary"][cfg.metric]["mean"]
     return float(value) if value is not None else float("nan")
-
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="control")
-def _hydra_main(cfg: DictConfig) -> float:
-    with user_errors("laserrl-control"):
-        return sweep_metric(run_control(cfg), cfg)
-
-
-def main() -> None:
-    _hydra_main()
-
-
-if __name__ == "__main__":
-    main()

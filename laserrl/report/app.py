@@ -14,18 +14,16 @@ import shlex
 import time
 from pathlib import Path
 
-import hydra
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from laserrl.checkpoint import load_checkpoint
-from laserrl.config import ConfigError, user_errors
+from laserrl.config import ConfigError
 from laserrl.report.claims import build_claims, markdown, to_json
 from laserrl.report.context import (ReportContext, bank_entries, bank_paths, grid, load_model, producing_command,
                                     read_json)
 from laserrl.report.figures import FIGURES, draw_figures
 from laserrl.report.spot import train_missing
-from laserrl.train import CONF_DIR
 
 
 def report_command() -> str:
@@ -107,17 +105,3 @@ def run_report(cfg: DictConfig) -> dict:
     (run_dir / "report.json").write_text(json.dumps(report, indent=1, default=str))
     print(f"report: {doc} ({minutes:.1f} min)")
     return report
-
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
-def _hydra_main(cfg: DictConfig) -> None:
-    with user_errors("laserrl-report"):
-        run_report(cfg)
-
-
-def main() -> None:
-    _hydra_main()
-
-
-if __name__ == "__main__":
-    main()

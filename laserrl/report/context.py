@@ -21,7 +21,8 @@ from laserrl.checkpoint import load_checkpoint
 from laserrl.config import ConfigError
 from laserrl.envs.factory import make_params, make_task
 from laserrl.envs.laser_env import ANGLE_NAMES
-from laserrl.evaluate import CONF_DIR, _stage_base_angles, evaluate_bank, evaluate_policy, load_agent
+from laserrl.paths import CONF_DIR
+from laserrl.evaluate import _stage_base_angles, evaluate_bank, evaluate_policy, load_agent
 
 #: the angles each model of the report controls
 ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES)}

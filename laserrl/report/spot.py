@@ -16,7 +16,7 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig
 
-from laserrl.train import CONF_DIR
+from laserrl.paths import CONF_DIR
 
 
 def compose_train_config(overrides: list[str], config_name: str = "config") -> DictConfig:

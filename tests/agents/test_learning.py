@@ -15,8 +15,9 @@ from torchrl.envs.utils import RandomPolicy
 
 from laserrl.envs.factory import make_env
 from laserrl.train import train
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(CONF_DIR)
 STARTS = [-40.0, -38.0, -36.0, -34.0]
 
 

@@ -3,7 +3,7 @@ agreement where its state is unique, and a difference from cold starts."""
 import pytest
 import torch
 
-from laserrl.analysis import StepSettings, cold_landscape, interval_width, intervals, settle, sweep
+from laserrl.analysis import StepSettings, cold_landscape, interval_width, intervals, sweep
 from laserrl.envs import LaserTask
 from laserrl.physics import CavityParams
 

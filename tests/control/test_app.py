@@ -13,8 +13,9 @@ from omegaconf import OmegaConf
 from laserrl.config import ConfigError
 from laserrl.control import Scenario
 from laserrl.control.app import ALL, build_controller, run_control, sweep_metric
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(CONF_DIR)
 CONTROLLERS = sorted(p.stem for p in (CONF / "controller").glob("*.yaml"))
 SCENARIOS = sorted(p.stem for p in (CONF / "scenario").glob("*.yaml"))
 SMOKE_PHYSICS = ["env.physics.n=64", "env.physics.z_steps=2", "env.max_round_trips=5", "env.compile=false"]

@@ -9,8 +9,9 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from laserrl.control import Scenario
+from laserrl.paths import CONF_DIR
 
-CONF = Path(__file__).resolve().parents[2] / "conf"
+CONF = Path(CONF_DIR)
 SCENARIOS = sorted(p.stem for p in (CONF / "scenario").glob("*.yaml"))
 
 

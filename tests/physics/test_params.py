@@ -99,13 +99,16 @@ def test_wavenumbers_equal_fftfreq():
     np.testing.assert_allclose(k.numpy(), expected, rtol=1e-14, atol=1e-14)
 
 
-def test_integral_float_n_and_z_steps_are_rejected_or_usable():
-    try:
-        p = CavityParams(n=256.0, z_steps=4.0)
-    except ValueError:
-        return  # rejecting them up front is fine
-    assert p.time_grid().shape == (256,)
-    assert p.wavenumbers().shape == (256,)
+def test_whole_float_n_and_z_steps_become_ints():
+    """Config files may give 256.0: it is taken as the integer, and a fraction is refused."""
+    p = CavityParams(n=256.0, z_steps=4.0)
+    assert (p.n, p.z_steps) == (256, 4) and type(p.n) is int and type(p.z_steps) is int
+    assert p == CavityParams(n=256, z_steps=4)
+    assert p.time_grid().shape == (256,) and p.wavenumbers().shape == (256,)
+    with pytest.raises(ValueError, match=r"CavityParams\.n must be a power of two"):
+        CavityParams(n=256.5)
+    with pytest.raises(ValueError, match=r"CavityParams\.z_steps must be a positive integer"):
+        CavityParams(z_steps=4.5)
 
 
 def test_unknown_integrator_is_named():
