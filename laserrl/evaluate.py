@@ -157,8 +157,12 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     by_K = {}
     for K in Ks:
         rows = [p for p in per_start if p["K"] == K]
+        # where the successful rollouts ended, in the first controlled angle (the starts are in starts_deg)
+        ends = [p["angle_path_deg"][-1][0] for p in rows if p["success"]]
         by_K[f"{K:g}"] = {"success_rate": sum(p["success"] for p in rows) / len(rows),
-                          "mean_final_reward": sum(p["final_reward"] for p in rows) / len(rows)}
+                          "mean_final_reward": sum(p["final_reward"] for p in rows) / len(rows),
+                          "locked_end_deg": [min(ends), max(ends)] if ends else None,
+                          "starts_deg": [min(starts), max(starts)]}
     return {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
         "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"],

@@ -156,3 +156,23 @@ def test_bank_entries_keep_ensembles_and_bank_paths_flattens_them():
     assert bank == ["a.pt", ["b0.pt", "b1.pt"], "c.pt"]
     assert bank_paths(bank) == ["a.pt", "b0.pt", "b1.pt", "c.pt"]
     assert bank_entries(None) == [] == bank_paths([])
+
+
+def _generalisation(single, nearest, max_q):
+    """A generalisation result at K = -0.2 and 0.1 with these success rates per rule."""
+    def rule(rates):
+        return {"by_K": {K: {"success_rate": s, "mean_final_reward": 0.1 + s / 10, "locked_end_deg": [50.0, 70.0] if s else None,
+                             "starts_deg": [-40.0, -10.0]} for K, s in zip(("-0.2", "0.1"), rates)}}
+    return {"K": [-0.2, 0.1], "rules": {"single": rule(single), "nearest": rule(nearest), "max_q": rule(max_q)}}
+
+
+def test_report_notes_come_from_the_measured_rules():
+    from laserrl.report.claims import _far_locks, _max_q_note
+
+    g = _generalisation(single=(0.0, 1.0), nearest=(1.0, 1.0), max_q=(0.0, 1.0))
+    assert _far_locks(g) == ("Where the one model fails and the nearest bank model locks, that model ends at alpha1 in "
+                             "K = -0.2: [50, 70] deg (starts in [-40, -10] deg).")
+    assert _max_q_note(g).startswith("Highest-Q succeeds at fewer K (1 / 2) than nearest-K (2)")
+    g = _generalisation(single=(1.0, 1.0), nearest=(1.0, 1.0), max_q=(1.0, 1.0))
+    assert _far_locks(g) == ""  # nothing to explain where the one model succeeds
+    assert _max_q_note(g) == "Highest-Q succeeds at as many K as nearest-K (2 / 2)."

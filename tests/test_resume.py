@@ -132,7 +132,7 @@ def test_sigkill_then_resume_continues_counters_and_logs(tmp_path):
     assert at_kill < at_term < 320
     assert _history_frames(run_dir)[-1] == at_term == _csv(run_dir)[-1][0]
 
-    # resume from the checkpoint file this time, to the end
+    # resume from the checkpoint file, to the end
     res = _run(tmp_path / "resume-2", f"resume={run_dir / 'checkpoints' / 'last.pt'}", "train.progress=false")
     assert res.returncode == 0, res.stderr[-3000:]
     assert f"resuming {run_dir} at {at_term} frames" in res.stdout
