@@ -24,7 +24,7 @@ from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_actor, make_qnet
 from laserrl.checkpoint import CheckpointError, load_checkpoint
-from laserrl.config import ConfigError
+from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 from laserrl.envs.factory import make_env
 from laserrl.envs.laser_env import ANGLE_NAMES
 
@@ -85,6 +85,19 @@ def _stage_base_angles(stage_cfg: Mapping[str, Any]) -> list[float]:
     return base
 
 
+def check_eval_config(eval_cfg: Mapping[str, Any]) -> None:
+    """The ``eval`` config's own values (a null takes the stage's protocol or the training env's);
+    a bad one raises a ConfigError naming ``eval.KEY``."""
+    for key in ("steps", "repeats", "max_round_trips", "min_round_trips"):
+        check_number(eval_cfg.get(key), f"eval.{key}", low=1, integer=True, optional=True)
+    for key in ("success_r", "hold_r"):
+        check_number(eval_cfg.get(key), f"eval.{key}", optional=True)
+    for key in ("K", "starts_deg"):
+        check_numbers(eval_cfg.get(key), f"eval.{key}", optional=True, scalar_ok=True)
+    if eval_cfg.get("init_fields") is not None:
+        check_one_of(eval_cfg["init_fields"], "eval.init_fields", ("sech", "noise"))
+
+
 def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any],
                     eval_cfg: Mapping[str, Any], seed: int = 0) -> dict:
     """Greedy rollouts of the evaluation protocol; returns the eval.json content.
@@ -107,12 +120,9 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     if eval_cfg.get("dtype"):
         env_cfg["dtype"] = eval_cfg["dtype"]
     env_cfg["compile"] = bool(eval_cfg.get("compile", env_cfg.get("compile", False)))
+    check_eval_config(eval_cfg)
     steps = int(eval_cfg["steps"])
-    if steps < 1:
-        raise ConfigError(f"eval.steps must be >= 1, got {steps}")
     repeats = int(eval_cfg.get("repeats") or 1)
-    if repeats < 1:
-        raise ConfigError(f"eval.repeats must be >= 1, got {repeats}")
     threshold = float(eval_cfg["success_r"])
     hold_r = eval_cfg.get("hold_r")
     hold_r = None if hold_r is None else float(hold_r)

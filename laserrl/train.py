@@ -17,6 +17,7 @@ import dataclasses
 import math
 import random
 import time
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
@@ -27,10 +28,85 @@ from tqdm import tqdm
 
 from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
 from laserrl.checkpoint import save_json
-from laserrl.config import agent_n_steps, check_train_config, log_config, make_logger, optim_lr_decay
+from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
+                            optim_lr_decay)
+from laserrl.evaluate import check_eval_config
+from laserrl.validate import ConfigError, check_number, check_one_of
 from laserrl.envs.factory import make_env
+from laserrl.envs.laser_env import LaserCavityEnv
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """The training loop's own numbers: the frame budget and its safety-net time limit, how often
+    to evaluate and checkpoint, when to stop at a success rate, gradient steps per frame and
+    the random frames before learning starts."""
+
+    total_frames: int
+    updates_per_frame: float
+    init_random_frames: int
+    max_minutes: float | None = None
+    eval_every_frames: int | None = None
+    stop_at_success: float | None = None
+    checkpoint_every_frames: int | None = None
+
+    def __post_init__(self):
+        check_number(self.total_frames, "train.total_frames", low=1, integer=True)
+        check_number(self.max_minutes, "train.max_minutes", low=0, low_open=True, optional=True)
+        check_number(self.eval_every_frames, "train.eval_every_frames", low=1, integer=True, optional=True)
+        check_number(self.stop_at_success, "train.stop_at_success", low=0, high=1, optional=True)
+        check_number(self.checkpoint_every_frames, "train.checkpoint_every_frames", low=1, integer=True, optional=True)
+        check_number(self.updates_per_frame, "optim.updates_per_frame", low=0, low_open=True)
+        check_number(self.init_random_frames, "replay.init_random_frames", low=0, integer=True)
+
+    @classmethod
+    def from_config(cls, cfg: DictConfig) -> "LoopSettings":
+        t = cfg.train
+        return cls(t.total_frames, cfg.optim.updates_per_frame, cfg.replay.init_random_frames, t.get("max_minutes"),
+                   t.get("eval_every_frames"), t.get("stop_at_success"), t.get("checkpoint_every_frames"))
+
+
+def check_collector_config(c: DictConfig) -> None:
+    """The ``collector`` config's own values (rules that involve other groups: ``check_train_config``)."""
+    check_one_of(c.kind, "collector.kind", ("sync", "multi_sync", "multi_async", "ray"))
+    check_number(c.frames_per_batch, "collector.frames_per_batch", low=1, integer=True)
+    check_number(c.num_workers, "collector.num_workers", low=1, integer=True)
+    check_number(c.get("worker_threads"), "collector.worker_threads", low=1, integer=True, optional=True)
+
+
+def check_train_config(cfg: DictConfig) -> None:
+    """Everything a run will build, built once on a dry run before anything is written: each
+    builder and dataclass checks its own values (its errors name the config key); checked here
+    are only the top-level keys and the rules that involve several groups."""
+    check_number(cfg.seed, "seed", low=0, high=2**32 - 1, integer=True)  # numpy's seed range
+    check_number(cfg.threads, "threads", low=1, integer=True, optional=True)
+    check_device(cfg.device)
+    check_collector_config(cfg.collector)
+    check_logger_config(cfg)
+    LoopSettings.from_config(cfg)
+    check_eval_config(OmegaConf.to_container(cfg.eval, resolve=True))
+    env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
+                   cfg.env.num_envs, cfg.seed, cfg.device)
+    build_agent(cfg, env.action_spec_unbatched)
+    make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
+    n_steps = make_n_step(agent_n_steps(cfg), cfg.agent.gamma)
+    # rules across groups
+    c, num_envs = cfg.collector, int(cfg.env.num_envs)
+    if c.frames_per_batch % num_envs:
+        raise ConfigError(f"collector.frames_per_batch ({c.frames_per_batch}) must be a multiple of "
+                          f"env.num_envs ({num_envs})")
+    if c.kind == "ray" and c.sync:
+        share, left = divmod(c.frames_per_batch, int(c.num_workers))
+        if left or share % num_envs:
+            raise ConfigError(f"collector.frames_per_batch ({c.frames_per_batch}) must split over "
+                              f"collector.num_workers ({c.num_workers}) into multiples of env.num_envs ({num_envs})")
+    if n_steps is not None and (c.kind == "multi_async" or (c.kind == "ray" and not c.sync)):
+        # n-step returns join each batch to the previous one, which needs the same envs in the same order
+        raise ConfigError(f"agent.n_steps={cfg.agent.n_steps} needs batches from every env in turn: use "
+                          f"collector=sync, multi_sync or ray with collector.sync=true, not {c.kind}"
+                          + (" with sync=false" if c.kind == "ray" else ""))
+
 
 def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
     """The double DQN of the ``agent`` and ``optim`` config for an env with ``action_spec``."""
@@ -59,10 +135,11 @@ def action_spec_of(cfg: DictConfig):
     return env.action_spec_unbatched
 
 
-def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0):
+def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0, envs: dict | None = None):
     """TorchRL collector over the batched env for the frames still to collect after
     ``frames_done`` (None if there are none); ``collector.kind``: sync (one process),
-    multi_sync / multi_async (worker processes) or ray (Ray actors, on this machine or a cluster)."""
+    multi_sync / multi_async (worker processes) or ray (Ray actors, on this machine or a cluster).
+    ``envs``: a sync collector's env ``snapshot`` from a checkpoint, whose episodes it continues."""
     from torchrl.collectors import Collector, MultiAsyncCollector, MultiSyncCollector
 
     if cfg.train.total_frames <= frames_done:
@@ -78,7 +155,7 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0):
     # must leave the env as it is (torchrl 0.14 warns, and 0.15 would append an InitTracker)
     no_policy_transforms = dict(auto_register_policy_transforms=False)
     if not multi:
-        return Collector(env_fn, policy, **common, **no_policy_transforms)
+        return Collector(partial(env_fn, snapshot=envs), policy, **common, **no_policy_transforms)
     if cfg.collector.kind == "ray":
         from torchrl.collectors.distributed import RayCollector
 
@@ -109,10 +186,19 @@ def greedy_success(cfg: DictConfig, actor, frames: int, logger) -> float:
     return success
 
 
+def env_snapshot(collector) -> dict | None:
+    """The state of a sync collector's cavities (episodes in flight); None for collectors whose
+    envs live in other processes, whose state TorchRL cannot hand over."""
+    env = getattr(collector, "env", None)
+    base = getattr(env, "base_env", env)
+    return base.snapshot() if isinstance(base, LaserCavityEnv) else None
+
+
 def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig, logger, started: float,
-             with_replay: bool = True) -> Path:
-    """Checkpoint the run as it stands (with the replay buffer unless ``with_replay`` is false)
-    and rewrite its history.json; returns the checkpoint path."""
+             envs=lambda: None, with_replay: bool = True) -> Path:
+    """Checkpoint the run as it stands (with the replay buffer unless ``with_replay`` is false,
+    and the collector's episodes in flight, ``envs()``) and rewrite its history.json; returns
+    the checkpoint path."""
     run.train_seconds = time.perf_counter() - started
     path = saver.save({
         "qnet": agent.qnet.state_dict(), "target": agent.target_weights(), "optimizer": agent.optimizer.state_dict(),
@@ -120,7 +206,7 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
         "config": OmegaConf.to_container(cfg, resolve=True),
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
-                   "logger": logger.state_dict() if logger is not None else None},
+                   "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)
     save_json(run.history, Path(cfg.run_dir) / "history.json")
     return path
@@ -166,6 +252,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     ``resume``: such a checkpoint (``laserrl.resume.load_run``) to continue, with ``cfg`` its config.
     """
     check_train_config(cfg)
+    loop = LoopSettings.from_config(cfg)
     run_dir = Path(cfg.run_dir)
     seed_everything(cfg)
     started = time.perf_counter()
@@ -181,7 +268,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))  # None: one-step TD
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
-    run = RunCounters(next_eval=cfg.train.get("eval_every_frames") or math.inf)
+    run = RunCounters(next_eval=loop.eval_every_frames or math.inf)
     if resume is not None:
         run = RunCounters(**resume["resume"]["counters"])
         run.resumed_at_frames.append(run.frames)
@@ -193,14 +280,14 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     logger = make_logger(cfg, run_dir, resume["resume"]["logger"] if resume else None, run.frames)
     if logger is not None:
         log_config(logger, cfg)
-    save = partial(save_run, saver, agent, run, cfg, logger, started)
+    collector, envs_at_shutdown = None, None
+    save = partial(save_run, saver, agent, run, cfg, logger, started,
+                   lambda: env_snapshot(collector) if collector is not None else envs_at_shutdown)
 
     # --- budgets: frames decide; train.max_minutes is a safety net
-    eval_every = cfg.train.get("eval_every_frames")
-    every = cfg.train.get("checkpoint_every_frames")
+    eval_every, every, target_rate = loop.eval_every_frames, loop.checkpoint_every_frames, loop.stop_at_success
     next_checkpoint = (run.frames // every + 1) * every if every else math.inf
-    max_seconds = 60.0 * cfg.train.max_minutes if cfg.train.max_minutes else math.inf
-    target_rate = cfg.train.get("stop_at_success")
+    max_seconds = 60.0 * loop.max_minutes if loop.max_minutes else math.inf
     if eval_every and target_rate is not None and resume is None:
         # a warm-started policy may already meet the target: then it needs no frames at all
         success = greedy_success(cfg, agent.actor, 0, logger)
@@ -210,14 +297,16 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     out_of_time = time.perf_counter() - started > max_seconds
     if out_of_time and run.frames_to_success is None:
         tqdm.write(f"train.max_minutes={cfg.train.max_minutes} already used by this run; raise it to train on")
-    # a resumed run's envs start new episodes (their mid-episode state is not saved), seeded from (seed, frames)
-    collector = (None if run.frames_to_success is not None or out_of_time
-                 else make_collector(cfg, agent.policy, env_seed(cfg.seed, run.frames), run.frames))
+    # a resumed run continues the episodes in flight where the checkpoint holds them (sync collector);
+    # otherwise its envs start new episodes, seeded from (seed, frames)
+    saved_envs = resume["resume"].get("envs") if resume is not None else None
+    if run.frames_to_success is None and not out_of_time:
+        collector = make_collector(cfg, agent.policy, env_seed(cfg.seed, run.frames), run.frames, saved_envs)
     if resume is not None:
         set_rng_state(resume["resume"]["rng"])  # the global generators continue from the checkpoint
 
     # --- the loop: collect a batch, store it, learn from replay, log, evaluate and checkpoint now and then
-    bar = tqdm(total=cfg.train.total_frames, initial=run.frames, unit="frames", disable=not cfg.train.progress,
+    bar = tqdm(total=loop.total_frames, initial=run.frames, unit="frames", disable=not cfg.train.progress,
                dynamic_ncols=True)
     between_batches = True  # the state is that of whole batches: a checkpoint of it is consistent
     try:
@@ -228,8 +317,8 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 run.frames += data.numel()
                 store(replay, n_step, data)
                 agent.explore(run.frames)
-                if run.frames >= cfg.replay.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
-                    for _ in range(max(1, int(round(data.numel() * cfg.optim.updates_per_frame)))):
+                if run.frames >= loop.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
+                    for _ in range(max(1, int(round(data.numel() * loop.updates_per_frame)))):
                         run.last_loss = agent.update(replay)
                         run.updates += 1
                 collector.update_policy_weights_()
@@ -263,7 +352,9 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     finally:
         bar.close()
         if collector is not None:
+            envs_at_shutdown = env_snapshot(collector)  # the collector lets go of its env on shutdown
             collector.shutdown()
+            collector = None
     if stop.signum is not None:
         save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))

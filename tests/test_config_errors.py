@@ -14,7 +14,8 @@ from omegaconf import OmegaConf
 from torchrl.envs.utils import check_env_specs
 
 from laserrl.agents.dqn import make_replay
-from laserrl.config import ConfigError, check_train_config
+from laserrl.config import ConfigError
+from laserrl.train import check_train_config
 from laserrl.envs.factory import make_env
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.physics import NonFiniteFieldError

@@ -5,7 +5,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from laserrl.config import check_train_config
+from laserrl.train import check_train_config
 from laserrl.envs.factory import make_params, make_task
 from laserrl.paths import CONF_DIR
 

@@ -145,7 +145,11 @@ def test_sigkill_then_resume_continues_counters_and_logs(tmp_path):
     history = json.loads((run_dir / "history.json").read_text())
     steps = list(range(BATCH, 321, BATCH))  # every batch exactly once: no gap, no duplicate at either resume
     assert [h["frames"] for h in history] == steps == _history_frames(whole)
-    assert [h["updates"] for h in history] == [h["updates"] for h in json.loads((whole / "history.json").read_text())]
+    whole_history = json.loads((whole / "history.json").read_text())
+    assert [h["updates"] for h in history] == [h["updates"] for h in whole_history]
+    # the checkpoints hold the episodes in flight and every generator: the resumed run is the whole run
+    for name in ("train/r_mean", "train/loss", "train/round_trips_per_step"):
+        assert [h[name] for h in history] == [h[name] for h in whole_history], name
     for name in ("train/r_mean", "train/epsilon", "train/loss"):
         rows = _csv(run_dir, name)
         assert [s for s, _ in rows] == steps

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 
-from laserrl.config import check_train_config
+from laserrl.train import check_train_config
 from laserrl.paths import CONF_DIR
 
 ROOT = Path(__file__).resolve().parent.parent

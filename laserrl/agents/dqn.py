@@ -20,13 +20,23 @@ from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from laserrl.agents.qnet import FieldQNet
+from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 OBS_KEYS = ["fields", "angles"]
 
 
 def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, hidden, negative_slope: float) -> FieldQNet:
-    return FieldQNet(num_actions, n=n, channels=tuple(channels), kernel_size=kernel_size, pool=pool,
-                     hidden=tuple(hidden), negative_slope=negative_slope)
+    """The Q-network of the ``agent.network`` config; bad values raise a ConfigError naming the key."""
+    channels = check_numbers(channels, "agent.network.channels", low=1, integer=True)
+    hidden = check_numbers(hidden, "agent.network.hidden", low=1, integer=True)
+    kernel_size = check_number(kernel_size, "agent.network.kernel_size", low=1, integer=True)
+    pool = check_number(pool, "agent.network.pool", low=1, integer=True)
+    negative_slope = check_number(negative_slope, "agent.network.negative_slope", low=0)
+    try:
+        return FieldQNet(num_actions, n=n, channels=tuple(channels), kernel_size=kernel_size, pool=pool,
+                         hidden=tuple(hidden), negative_slope=negative_slope)
+    except ValueError as err:  # combinations only the network can judge (odd kernel, pooling vs n)
+        raise ConfigError(f"agent.network: {err}") from None
 
 
 def make_actor(qnet: FieldQNet, action_spec) -> QValueActor:
@@ -49,12 +59,10 @@ class EpsilonSchedule:
     kind: str = "exponential"
 
     def __post_init__(self):
-        if self.kind not in ("exponential", "linear"):
-            raise ValueError(f"agent.exploration.kind must be 'exponential' or 'linear', got {self.kind!r}")
-        if not (0.0 <= self.end <= self.start <= 1.0):
-            raise ValueError(f"agent.exploration needs 0 <= end <= start <= 1, got start={self.start}, end={self.end}")
-        if not self.decay_frames > 0:
-            raise ValueError(f"agent.exploration.decay_frames must be > 0, got {self.decay_frames}")
+        check_one_of(self.kind, "agent.exploration.kind", ("exponential", "linear"))
+        check_number(self.start, "agent.exploration.start", low=0, high=1)
+        check_number(self.end, "agent.exploration.end", low=0, high=self.start)
+        check_number(self.decay_frames, "agent.exploration.decay_frames", low=0, low_open=True)
 
     def __call__(self, frames: int) -> float:
         if self.kind == "exponential":
@@ -69,8 +77,8 @@ def make_exploration_policy(actor: QValueActor, action_spec, schedule: EpsilonSc
 
 
 def make_loss(actor: QValueActor, action_spec, gamma: float, loss_function: str = "smooth_l1") -> DQNLoss:
-    if not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"agent.gamma must be in [0, 1], got {gamma}")
+    check_number(gamma, "agent.gamma", low=0, high=1)
+    check_one_of(loss_function, "agent.loss_function", ("l1", "l2", "smooth_l1"))
     loss = DQNLoss(actor, loss_function=loss_function, delay_value=True, double_dqn=True, action_space=action_spec)
     loss.make_value_estimator(gamma=gamma)
     return loss
@@ -78,28 +86,26 @@ def make_loss(actor: QValueActor, action_spec, gamma: float, loss_function: str 
 
 def make_target_updater(loss: DQNLoss, kind: str, tau: float = 0.005, interval: int = 500):
     """SoftUpdate (paper: partial update every step) or HardUpdate every ``interval`` updates."""
+    check_one_of(kind, "agent.target.kind", ("soft", "hard"))
+    tau = check_number(tau, "agent.target.tau", low=0, high=1, low_open=True)
+    interval = check_number(interval, "agent.target.interval", low=1, integer=True)
     if kind == "soft":
-        if not 0.0 < tau <= 1.0:
-            raise ValueError(f"agent.target.tau must be in (0, 1], got {tau}")
         return SoftUpdate(loss, tau=tau)
-    if kind == "hard":
-        if interval < 1:
-            raise ValueError(f"agent.target.interval must be >= 1, got {interval}")
-        return HardUpdate(loss, value_network_update_interval=interval)
-    raise ValueError(f"agent.target.kind must be 'soft' or 'hard', got {kind!r}")
+    return HardUpdate(loss, value_network_update_interval=interval)
 
 
 def make_replay(kind: str, size: int, batch_size: int, alpha: float = 0.6, beta: float = 0.4, device="cpu"):
     """TorchRL's prioritized (default) or uniform replay over a flat tensor storage."""
-    if size < 1 or batch_size < 1:
-        raise ValueError(f"replay.size and optim.batch_size must be >= 1, got {size} and {batch_size}")
-    storage = LazyTensorStorage(int(size), device=device)
+    check_one_of(kind, "replay.kind", ("prioritized", "uniform"))
+    size = check_number(size, "replay.size", low=1, integer=True)
+    batch_size = check_number(batch_size, "optim.batch_size", low=1, integer=True)
+    alpha = check_number(alpha, "replay.alpha", low=0)
+    beta = check_number(beta, "replay.beta", low=0)
+    storage = LazyTensorStorage(size, device=device)
     if kind == "prioritized":
         return TensorDictPrioritizedReplayBuffer(alpha=alpha, beta=beta, storage=storage, batch_size=batch_size,
                                                  priority_key="td_error")
-    if kind == "uniform":
-        return TensorDictReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=batch_size)
-    raise ValueError(f"replay.kind must be 'prioritized' or 'uniform', got {kind!r}")
+    return TensorDictReplayBuffer(storage=storage, sampler=RandomSampler(), batch_size=batch_size)
 
 
 def make_n_step(n_steps: int, gamma: float) -> MultiStepTransform | None:
@@ -113,8 +119,7 @@ def make_n_step(n_steps: int, gamma: float) -> MultiStepTransform | None:
     stored once its n steps have been collected (None until then). The laser env's
     episodes only end by truncation, for which bootstrapping from the last state is right.
     """
-    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-        raise ValueError(f"agent.n_steps must be an integer >= 1, got {n_steps!r}")
+    n_steps = check_number(n_steps, "agent.n_steps", low=1, integer=True)
     return MultiStepTransform(n_steps, gamma) if n_steps > 1 else None
 
 
@@ -148,6 +153,11 @@ class DQNAgent:
         keyword groups are the ``agent`` and ``optim`` config entries."""
         qnet = make_qnet(int(action_spec.n), n, network["channels"], network["kernel_size"], network["pool"],
                          network["hidden"], network["negative_slope"])
+        lr = check_number(lr, "optim.lr", low=0, low_open=True)
+        weight_decay = check_number(weight_decay, "optim.weight_decay", low=0)
+        lr_decay = check_number(lr_decay, "optim.lr_decay", low=0, high=1, low_open=True)
+        lr_decay_updates = check_number(lr_decay_updates, "optim.lr_decay_updates", low=1, integer=True)
+        max_grad_norm = check_number(max_grad_norm, "optim.max_grad_norm", low=0, low_open=True)
         actor = make_actor(qnet, action_spec)
         schedule = EpsilonSchedule(**exploration)
         policy, egreedy = make_exploration_policy(actor, action_spec, schedule)

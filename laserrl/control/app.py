@@ -5,7 +5,7 @@ comparison table) for ``scenario.steps`` agent steps on ``num_cavities`` cavitie
 with its own K trajectory and start angles from the scenario and ``seed``. Every
 controller gets the same budget: one setting of the angles per agent step, each step the
 same round trips as the DQN's training env (the checkpoint's ``env`` config; without a
-checkpoint, ``conf/env``). Writes ``control.json`` (metrics per controller, averaged over
+checkpoint, ``laserrl/conf/env``). Writes ``control.json`` (metrics per controller, averaged over
 cavities with spread, and the traces) and ``control.png`` (r, K and the angles over time,
 the paper's fig. 7) into the run directory, and prints the table.
 """

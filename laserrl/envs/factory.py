@@ -45,14 +45,18 @@ def make_params(env_cfg: Mapping[str, Any]) -> CavityParams:
 
 
 def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs: int, seed: int,
-             device: str = "cpu", centred: bool = True, threads: int | None = None, **task_overrides):
-    """A batched LaserCavityEnv, with the paper's reward centring if ``centred``."""
+             device: str = "cpu", centred: bool = True, threads: int | None = None, snapshot: Mapping | None = None,
+             **task_overrides):
+    """A batched LaserCavityEnv, with the paper's reward centring if ``centred``; with a
+    ``snapshot`` (``LaserCavityEnv.snapshot()``) its first reset continues that state."""
     if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"env.num_envs must be a positive integer, got {num_envs!r}")
     if threads:
         torch.set_num_threads(int(threads))
     env = LaserCavityEnv(num_envs, task=make_task(env_cfg, stage_cfg, **task_overrides), params=make_params(env_cfg),
                          device=device, seed=seed)
+    if snapshot is not None:
+        env.continue_from(snapshot)
     if centred:
         center = finite_number(env_cfg["reward_center"], "env.reward_center")
         scale = finite_number(env_cfg["reward_scale"], "env.reward_scale")

@@ -192,6 +192,7 @@ class LaserCavityEnv(EnvBase):
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(seed if seed is not None else int(torch.empty((), dtype=torch.int64).random_()))
         self._numerics = self.task.numerics
+        self._pending: CavityState | None = None  # a saved state the next full reset continues (continue_from)
         self.state = CavityState(
             u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
             angles=torch.zeros(B, 4, dtype=torch.float64, device=dev), K=torch.zeros(B, dtype=torch.float64, device=dev),
@@ -245,6 +246,9 @@ class LaserCavityEnv(EnvBase):
         mask = None
         if tensordict is not None and "_reset" in tensordict.keys():
             mask = tensordict.get("_reset").reshape(self.batch_size)
+        if mask is None and self._pending is not None:  # the episodes in flight of a checkpointed run
+            self.state, self._pending = self._pending, None
+            return self._reset_output()
         u, v, angles, K = self._sample_initial()
         # explicit initial state for evaluation protocols: (B, 4) radians / (B,) K
         if tensordict is not None and "init_angles" in tensordict.keys():
@@ -255,6 +259,9 @@ class LaserCavityEnv(EnvBase):
                             batch_size=self.batch_size, device=self.device)
         # sync-free partial reset: sample for all, keep where the mask is set
         self.state = fresh if mask is None else fresh.where(mask, self.state)
+        return self._reset_output()
+
+    def _reset_output(self) -> TensorDictBase:
         r = reward_terms(self.state.u, self.state.v, self.params)[2]
         out = self._observation(r, torch.zeros_like(self.state.step_count))
         out.set("done", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
@@ -277,6 +284,34 @@ class LaserCavityEnv(EnvBase):
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_())
         self._rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ checkpoints
+    def snapshot(self) -> dict:
+        """The cavities' state and the env's generator, as plain tensors (for a run's checkpoint)."""
+        st = self.state
+        return {"state": {"u": st.u.clone(), "v": st.v.clone(), "angles": st.angles.clone(), "K": st.K.clone(),
+                          "step_count": st.step_count.clone()},
+                "rng": self._rng.get_state()}
+
+    def continue_from(self, snapshot: Mapping) -> None:
+        """Continue a ``snapshot()``: the next full reset returns its state (so a collector built on
+        this env carries on the episodes in flight) and the generator goes on from its state."""
+        try:
+            saved = snapshot["state"]
+            like = {"u": (self.state.u, (*self.batch_size, self.params.n)), "v": (self.state.v, (*self.batch_size, self.params.n)),
+                    "angles": (self.state.angles, (*self.batch_size, 4)), "K": (self.state.K, tuple(self.batch_size)),
+                    "step_count": (self.state.step_count, tuple(self.batch_size))}
+            values = {}
+            for key, (ref, shape) in like.items():
+                value = saved[key]
+                if not isinstance(value, torch.Tensor) or tuple(value.shape) != shape or value.dtype != ref.dtype:
+                    raise ValueError(f"{key}: expected {ref.dtype} of shape {shape}")
+                values[key] = value.to(self.device)
+            rng = snapshot["rng"]
+        except (KeyError, TypeError, ValueError) as err:
+            raise ValueError(f"the saved env state does not fit this env ({err})") from None
+        self._pending = CavityState(**values, batch_size=self.batch_size, device=self.device)
+        self._rng.set_state(rng)
 
     # ------------------------------------------------------------------ introspection
     @property

@@ -1,4 +1,4 @@
-"""``laserrl-report``: regenerate the paper's figures and docs/reproduction.md (conf/report.yaml).
+"""``laserrl-report``: regenerate the paper's figures and docs/reproduction.md (laserrl/conf/report.yaml).
 
     laserrl-report report.checkpoints.siso=RUN report.checkpoints.duo=CURR/02-duo \
         report.checkpoints.miso=CURR/03-miso 'report.checkpoints.bank=[K0,K0.2,K0.4]' \

@@ -98,7 +98,7 @@ class Model:
     @property
     def stage_cfg(self) -> dict:
         """The checkpoint's stage; one saved before stages had a ``protocol`` gets the protocol
-        of its stage file in conf/stage (the same task)."""
+        of its stage file in laserrl/conf/stage (the same task)."""
         stage = dict(self.config["stage"])
         if not stage.get("protocol"):
             path = Path(CONF_DIR) / "stage" / f"{stage.get('name')}.yaml"
@@ -180,7 +180,7 @@ class ReportContext:
     """Checkpoints, result files and settings of one report; see the module docstring.
 
     Args:
-        cfg: the ``report`` section of conf/report.yaml as a plain dict.
+        cfg: the ``report`` section of laserrl/conf/report.yaml as a plain dict.
         run_dir: where work files go.  models: role -> Model (siso, duo, miso).
         bank: the bank's entries (fig. 6), paths or lists of paths (ensembles).  commands: label -> command line of the
             runs behind the numbers ("report": this report's own command).

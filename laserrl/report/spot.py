@@ -1,7 +1,7 @@
 """Train the models a report was not given, with small budgets, by the ordinary training code.
 
 Each model is ``laserrl.train.train`` (the bank: ``laserrl.experiments.run_transfer``) on a
-training config composed from conf/ exactly as ``laserrl-train OVERRIDES`` would compose it,
+training config composed from laserrl/conf exactly as ``laserrl-train OVERRIDES`` would compose it,
 with ``report.train.common`` + ``report.train.<model>`` as the overrides. The siso model is
 trained from scratch, duo from siso, miso from duo (the curriculum), the bank by fine-tuning
 siso at each K of ``transfer.Ks``.
@@ -25,7 +25,7 @@ def compose_train_config(overrides: list[str], config_name: str = "config") -> D
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    if GlobalHydra.instance().is_initialized():  # inside laserrl-report: the same conf/ directory
+    if GlobalHydra.instance().is_initialized():  # inside laserrl-report: the same laserrl/conf directory
         return compose(config_name=config_name, overrides=overrides)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose(config_name=config_name, overrides=overrides)

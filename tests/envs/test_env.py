@@ -306,3 +306,27 @@ def test_K_range_is_sampled_per_cavity():
     assert torch.equal(env.K, K)  # the disturbance is not changed by a step
     env.reset()
     assert not torch.equal(env.K, K)  # but is resampled at reset
+
+
+def test_a_snapshot_continues_the_episodes_in_flight():
+    env = LaserCavityEnv(3, max_round_trips=3, seed=4)
+    td = env.reset()
+    td = step(env, td, [0, 1, 2])["next"]
+    saved = env.snapshot()
+    after = step(env, td, [2, 2, 0])["next"]
+    other = LaserCavityEnv(3, max_round_trips=3, seed=99)
+    other.continue_from(saved)
+    again = other.reset()  # the first full reset returns the saved state, not a new draw
+    assert torch.equal(again["fields"], td["fields"]) and torch.equal(again["step_count"], td["step_count"])
+    assert torch.equal(step(other, again, [2, 2, 0])["next"]["fields"], after["fields"])
+    assert torch.equal(other._rng.get_state(), env._rng.get_state())
+    fresh = other.reset()  # later resets sample as usual
+    assert int(fresh["step_count"].sum()) == 0
+
+
+def test_a_snapshot_of_another_env_is_refused_by_name():
+    saved = LaserCavityEnv(2, max_round_trips=3).snapshot()
+    with pytest.raises(ValueError, match=r"the saved env state does not fit this env \(u: expected"):
+        LaserCavityEnv(3, max_round_trips=3).continue_from(saved)
+    with pytest.raises(ValueError, match="the saved env state does not fit this env"):
+        LaserCavityEnv(2, max_round_trips=3).continue_from({"state": {}})
