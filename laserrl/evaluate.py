@@ -25,7 +25,7 @@ from tensordict import TensorDict
 from laserrl.agents.dqn import make_actor, make_qnet
 from laserrl.checkpoint import CheckpointError, load_checkpoint
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
-from laserrl.envs.factory import make_env
+from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -176,7 +176,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     return {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
         "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"],
-        "min_round_trips": env_cfg.get("min_round_trips", 2), "K": Ks,
+        "min_round_trips": min_round_trips(env_cfg), "K": Ks,
         "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,

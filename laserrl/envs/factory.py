@@ -18,11 +18,17 @@ TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "init_fields", "
 ENV_TASK_KEYS = ("max_round_trips", "min_round_trips", "tol", "dtype", "compile")  # LaserTask fields set from the env group
 
 
+def min_round_trips(env_cfg: Mapping[str, Any]) -> int:
+    """``env.min_round_trips``; 1 (the paper's rule, which the env ran then) for the saved config
+    of a run from before the key existed."""
+    return env_cfg.get("min_round_trips", 1)
+
+
 def make_task(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], **overrides) -> LaserTask:
     """LaserTask from the ``env`` (numerics) and ``stage`` (what is controlled) config groups;
     a bad value raises a ValueError naming its config key (``stage.K``, ``env.dtype``, ...)."""
     kwargs = {k: stage_cfg[k] for k in TASK_KEYS if k in stage_cfg}  # LaserTask takes lists as ranges
-    kwargs.update(max_round_trips=env_cfg["max_round_trips"], min_round_trips=env_cfg.get("min_round_trips", 2),
+    kwargs.update(max_round_trips=env_cfg["max_round_trips"], min_round_trips=min_round_trips(env_cfg),
                   tol=env_cfg.get("tol"), dtype=env_cfg["dtype"], compile=env_cfg["compile"])
     kwargs.update(overrides)
     try:

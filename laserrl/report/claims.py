@@ -459,8 +459,8 @@ def _physics_line(model) -> str:
     from laserrl.envs.factory import make_params, make_task
 
     p, task = make_params(model.env_cfg), make_task(model.env_cfg, model.stage_cfg)
-    return (f"{model.role}: n = {p.n}, {p.integrator} z_steps = {p.z_steps}, <= {task.max_round_trips} round trips "
-            f"per step, tol {task.tol:g}, {task.dtype}")
+    return (f"{model.role}: n = {p.n}, {p.integrator} z_steps = {p.z_steps}, {task.min_round_trips} to "
+            f"{task.max_round_trips} round trips per step, tol {task.tol:g}, {task.dtype}")
 
 
 def to_json(rows: list[Claim]) -> list[dict]:

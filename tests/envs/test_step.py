@@ -96,3 +96,17 @@ def test_partial_reset_keeps_the_other_cavities_state():
     env.reset(TensorDict(_reset=torch.tensor([True, False]), batch_size=[2]))
     assert int(env.state.step_count[0]) == 0 and int(env.state.step_count[1]) == 1
     assert torch.equal(env.state.u[1], kept.u) and torch.equal(env.state.angles[1], kept.angles)
+
+
+def test_a_saved_env_config_without_the_key_keeps_the_papers_rule():
+    """Runs saved before env.min_round_trips existed stepped with the paper's rule."""
+    from omegaconf import OmegaConf
+
+    from laserrl.envs.factory import make_task
+    from laserrl.paths import CONF_DIR
+
+    env_cfg = OmegaConf.to_container(OmegaConf.load(f"{CONF_DIR}/env/paper.yaml"))
+    stage_cfg = OmegaConf.to_container(OmegaConf.load(f"{CONF_DIR}/stage/siso.yaml"))
+    assert make_task(env_cfg, stage_cfg).min_round_trips == 2
+    del env_cfg["min_round_trips"]
+    assert make_task(env_cfg, stage_cfg).min_round_trips == 1
