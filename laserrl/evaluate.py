@@ -24,9 +24,9 @@ from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_actor, make_qnet
 from laserrl.checkpoint import CheckpointError, load_checkpoint
-from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES
+from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
     """Rebuild the Q-network of a checkpoint for an env with ``action_spec``."""

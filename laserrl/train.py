@@ -30,12 +30,13 @@ from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
 from laserrl.checkpoint import save_json
 from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
                             optim_lr_decay)
-from laserrl.evaluate import check_eval_config
-from laserrl.validate import ConfigError, check_number, check_one_of
 from laserrl.envs.factory import make_env
 from laserrl.envs.laser_env import LaserCavityEnv
+from laserrl.evaluate import check_eval_config
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
+from laserrl.validate import ConfigError, check_number, check_one_of
+
 
 @dataclass(frozen=True)
 class LoopSettings:
