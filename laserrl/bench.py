@@ -16,6 +16,13 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
   Strang step, or per DOP853 stage);
 * accuracy: worst relative L2 error of one round trip against the stored
   high-accuracy reference solutions (``laserrl/data/cavity_reference.npz``);
+* with ``--compare-coarse-steps N``: the torch solver also with a coarse split-step pass of
+  N steps (``CavityParams(z_steps_coarse=N)``; 8 is the former (8, 16) default), timed in
+  alternation with the default at each batch size, and the speed ratio of the two;
+* with ``--k-sweep``: instead of the timings, the worst one-round-trip error of the default
+  solver (and of the comparison setting) over K in [-0.2, 0.4], several angle sets and sech
+  and noise starts, along reference trajectories of ``CavityParams.precise()``
+  (``sweep_references``, ``one_round_trip_errors``);
 * with ``--processes N``: the whole machine, N processes of one torch thread each
   stepping their own batch at the same time (how the training collectors use a
   multi-core CPU), and for comparison N scipy reference processes at the same time.
@@ -25,6 +32,7 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import platform
@@ -37,7 +45,7 @@ import numpy as np
 import torch
 
 from laserrl.paths import REFERENCE_DATA
-from laserrl.physics import CavityParams, round_trip, sech_fields
+from laserrl.physics import CavityParams, noise_fields, round_trip, sech_fields
 from laserrl.physics import reference as ref
 from laserrl.physics.cavity import fft_pairs_per_round_trip
 
@@ -70,6 +78,89 @@ def torch_accuracy(data: dict, params: CavityParams, dtype=torch.complex64, comp
         u1, v1 = round_trip(u, v, ang, float(data[f"{case}/K"]), params, compile=compile)
         err = _rel_err(u1.cpu().numpy(), v1.cpu().numpy(), data[f"{case}/u"][1:], data[f"{case}/v"][1:])
         worst = max(worst, float(err.max()))
+    return worst
+
+
+# --- accuracy sweep over K, angles and start kinds ------------------------------------------
+#: K values and angle sets (alpha1, alpha2, alpha3, alpha_p in degrees) of ``--k-sweep``.
+SWEEP_K = (-0.2, 0.0, 0.1, 0.2, 0.3, 0.4)
+SWEEP_ANGLES_DEG = {
+    "alpha1=-24": PAPER_ANGLES_DEG,
+    "alpha1=-40": (-40.0, 3.0, 28.0, 88.0),
+    "alpha1=-12": (-12.0, 3.0, 28.0, 88.0),
+    "four-controller": (15.0, -5.0, 20.0, 84.0),
+}
+SWEEP_STARTS = ("sech", "noise")
+
+
+def sweep_references(Ks=SWEEP_K, angles_deg: dict = SWEEP_ANGLES_DEG, starts=SWEEP_STARTS, round_trips: int = 30,
+                     seed: int = 0, params: CavityParams | None = None):
+    """Reference trajectories, one cavity per (K, angle set, start kind), all in one batch.
+
+    Starts are ``sech_fields`` (the paper's 0.5 sech(t/2)) or ``noise_fields`` (seeded);
+    the trajectories have the physics of ``params`` (default: the paper's) and are run at
+    ``CavityParams.precise()`` resolution in complex128. Returns (labels [(K, angle name,
+    start)], angles (B, 4) rad, K (B,), U, V (B, round_trips + 1, n) complex128 with the
+    start at index 0)."""
+    base = params or CavityParams()
+    numerics = ("z_steps", "z_steps_coarse", "integrator")
+    precise = CavityParams.precise(**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)
+                                      if f.name not in numerics})
+    labels = [(float(K), name, start) for K in Ks for name in angles_deg for start in starts]
+    B = len(labels)
+    u_s, v_s = sech_fields(B, precise, dtype=torch.complex128)
+    u_n, v_n = noise_fields(B, precise, generator=torch.Generator().manual_seed(seed), dtype=torch.complex128)
+    noise = torch.tensor([start == "noise" for *_, start in labels])[:, None]
+    u, v = torch.where(noise, u_n, u_s), torch.where(noise, v_n, v_s)
+    ang = torch.deg2rad(torch.tensor([angles_deg[name] for _, name, _ in labels], dtype=torch.float64))
+    K = torch.tensor([k for k, *_ in labels], dtype=torch.float64)
+    us, vs = [u], [v]
+    for _ in range(round_trips):
+        u, v = round_trip(u, v, ang, K, precise)
+        us.append(u)
+        vs.append(v)
+    return labels, ang, K, torch.stack(us, 1), torch.stack(vs, 1)
+
+
+def one_round_trip_errors(references, params: CavityParams, dtype=torch.complex64, compile: bool = False) -> np.ndarray:
+    """(B, R) relative L2 errors of one round trip of ``params`` started from each state of the
+    reference trajectories (``sweep_references``) against the reference's next state."""
+    _, ang, K, U, V = references
+    B, R1, n = U.shape
+    R = R1 - 1
+    u1, v1 = round_trip(U[:, :-1].reshape(-1, n).to(dtype), V[:, :-1].reshape(-1, n).to(dtype),
+                        ang.repeat_interleave(R, 0), K.repeat_interleave(R, 0), params, compile=compile)
+    err = _rel_err(u1.to(torch.complex128).numpy(), v1.to(torch.complex128).numpy(),
+                   U[:, 1:].reshape(-1, n).numpy(), V[:, 1:].reshape(-1, n).numpy())
+    return err.reshape(B, R)
+
+
+def print_k_sweep(references, settings: dict, out=sys.stdout) -> dict:
+    """Markdown tables of the worst one-round-trip error per K for each named params setting:
+    of the first round trip from each start kind, of the later round trips per angle set
+    (both starts), and of all; returns {setting: {K: worst of all}}."""
+    labels = references[0]
+    Ks = sorted({k for k, *_ in labels})
+    names = list(dict.fromkeys(name for _, name, _ in labels))
+    starts = list(dict.fromkeys(start for *_, start in labels))
+    rounds = references[3].shape[1] - 1
+    worst = {}
+    for setting, params in settings.items():
+        err = one_round_trip_errors(references, params)
+        worst[setting] = {}
+        print(f"\nworst one-round-trip error, {setting} (complex64, {rounds} round trips from each start, "
+              f"against CavityParams.precise() trajectories):\n", file=out)
+        cols = [f"1st trip, {s}" for s in starts] + [f"later, {nm}" for nm in names] + ["all"]
+        print("| K | " + " | ".join(cols) + " |", file=out)
+        print("|---:|" + "---:|" * len(cols), file=out)
+        for K in Ks:
+            rows = [i for i, (k, *_) in enumerate(labels) if k == K]
+            cells = [err[[i for i in rows if labels[i][2] == s], 0].max() for s in starts]
+            cells += [err[[i for i in rows if labels[i][1] == nm], 1:].max() if rounds > 1 else float("nan")
+                      for nm in names]
+            cells.append(err[rows].max())
+            worst[setting][K] = float(err[rows].max())
+            print(f"| {K:+.1f} | " + " | ".join(f"{c:.1e}" for c in cells) + " |", file=out)
     return worst
 
 
@@ -245,6 +336,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--processes", type=int, default=1,
                         help="also time N simultaneous one-thread processes (torch and scipy), summed")
     parser.add_argument("--process-batch", type=int, default=256, help="batch size of each torch process")
+    parser.add_argument("--compare-coarse-steps", type=int, default=None, metavar="N",
+                        help="also time (and sweep) the split-step solver with an N-step coarse pass "
+                             "(CavityParams(z_steps_coarse=N); 8: the former (8, 16) default), in alternation "
+                             "with the default, and print the speed ratio")
+    parser.add_argument("--compare-repeats", type=int, default=3,
+                        help="alternating timings of default and comparison per batch size (median)")
+    parser.add_argument("--k-sweep", action="store_true",
+                        help="print the worst one-round-trip error over K, angles and sech / noise starts "
+                             "instead of timing")
+    parser.add_argument("--sweep-round-trips", type=int, default=30, help="round trips per start of --k-sweep")
     args = parser.parse_args(argv)
     for b in args.batch_sizes:
         if b < 1:
@@ -253,15 +354,30 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--processes must be positive, got {args.processes}")
     if args.process_batch < 1:
         parser.error(f"--process-batch must be positive, got {args.process_batch}")
+    if args.compare_repeats < 1 or args.sweep_round_trips < 1:
+        parser.error("--compare-repeats and --sweep-round-trips must be positive")
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     params = CavityParams()
+    compare = None
+    if args.compare_coarse_steps is not None:
+        try:
+            compare = params.replace(z_steps_coarse=args.compare_coarse_steps)
+        except ValueError as err:
+            parser.error(str(err))
     dtype = torch.complex64
     compile = not args.no_compile
+    if args.k_sweep:
+        print(f"machine: {machine_line()}")
+        settings = {f"default, split passes {params.split_passes}": params}
+        if compare is not None:
+            settings[f"split passes {compare.split_passes}"] = compare
+        print_k_sweep(sweep_references(round_trips=args.sweep_round_trips), settings)
+        return 0
     print(f"machine: {machine_line()}")
     print(f"reference: scipy.integrate.ode DOP853 per round trip, rtol {_sci(PAPER_TOL[0])}, atol {_sci(PAPER_TOL[1])} "
           f"(the paper's code); also at rtol {_sci(LOOSE_TOL[0])}, atol {_sci(LOOSE_TOL[1])}")
     print(f"settings: complex64, integrator {params.integrator}, z_steps={params.z_steps} "
-          f"({fft_pairs_per_round_trip(params)} FFT pairs per round trip), "
+          f"(split passes {params.split_passes}: {fft_pairs_per_round_trip(params)} FFT pairs per round trip), "
           f"{'compiled' if compile else 'eager'}, device {args.device}")
 
     data = None if args.skip_accuracy else _reference_data()
@@ -276,11 +392,30 @@ def main(argv: list[str] | None = None) -> int:
     ref_times = [time_scipy(params, args.scipy_round_trips)]
     loose_rate = 1.0 / time_scipy(params, args.scipy_round_trips, LOOSE_TOL)
     measured = []  # (name, batch, rate, fft-bound rate, accuracy, first call)
+    speed_ratios = []  # (batch, default rate / comparison rate, each timing's ratio)
+    acc_compare = float("nan")
+    if compare is not None and data is not None:
+        acc_compare = torch_accuracy(data, compare)
     for batch in args.batch_sizes:
-        per_rt, first = time_torch(batch, params, dtype, args.device, compile, args.min_seconds)
+        if compare is None:
+            per_rt, first = time_torch(batch, params, dtype, args.device, compile, args.min_seconds)
+            rate = batch / per_rt
+        else:  # alternate, so that a drift of the host's speed moves both alike
+            rates, old_rates, firsts = [], [], []
+            for _ in range(args.compare_repeats):
+                per_rt, first = time_torch(batch, params, dtype, args.device, compile, args.min_seconds)
+                rates.append(batch / per_rt)
+                firsts.append(first)
+                per_rt, _ = time_torch(batch, compare, dtype, args.device, compile, args.min_seconds)
+                old_rates.append(batch / per_rt)
+            rate, old_rate, first = statistics.median(rates), statistics.median(old_rates), firsts[0]
+            pair_ratios = [r / o for r, o in zip(rates, old_rates)]
+            speed_ratios.append((batch, statistics.median(pair_ratios), pair_ratios))
         fft_rt = time_fft_bound(batch, params, dtype, args.device)
-        rate = batch / per_rt
         measured.append((f"torch batch {batch}", batch, rate, batch / fft_rt, acc_torch, first))
+        if compare is not None:
+            measured.append((f"torch batch {batch}, split passes {compare.split_passes}", batch, old_rate,
+                             batch / time_fft_bound(batch, compare, dtype, args.device), acc_compare, float("nan")))
         print(f"  measured batch {batch}: {rate:,.0f} round trips/s", file=sys.stderr, flush=True)
     ref_times.append(time_scipy(params, args.scipy_round_trips))
     machine_ref = float("nan")
@@ -312,6 +447,12 @@ def main(argv: list[str] | None = None) -> int:
     for name, batch, rate, ratio, bound, acc, first in rows:
         fmt = lambda x, f: "-" if (isinstance(x, float) and math.isnan(x)) else format(x, f)  # noqa: E731
         print(f"| {name} | {batch} | {rate:,.0f} | {fmt(ratio, ',.0f' if ratio >= 10 else '.2g')} | {fmt(bound, ',.0f')} | {fmt(acc, '.1e')} | {fmt(first, '.1f')} |")
+    if speed_ratios:
+        print()
+        for batch, ratio, each in speed_ratios:
+            print(f"speed of split passes {params.split_passes} relative to {compare.split_passes} at batch {batch}: "
+                  f"{ratio:.3f} (median of {len(each)} alternating timings: {', '.join(f'{r:.3f}' for r in each)})")
+    per_batch = [r for r in per_batch if "split passes" not in r[0]]
     best = max(per_batch, key=lambda r: r[2])
     print()
     print(f"best: {best[2]:,.0f} cavity round trips/s at batch {best[1]} = {best[3]:,.0f}x the scipy reference "

@@ -179,9 +179,9 @@ def _stepper(params: CavityParams, real_dtype: torch.dtype, device: torch.device
     """fn(w, K) -> (w, error) over one round trip of the Fourier-space fields w (complex,
     (B, 2, n)), for params with any z_steps."""
     if params.integrator == "split":
-        # the step count is an argument, so refinements reuse the compiled graphs
-        split = _split_stepper(params.replace(z_steps=1), real_dtype, device, compiled)
-        return functools.partial(split, steps=params.z_steps)
+        # the step counts are an argument, so refinements reuse the compiled graphs
+        split = _split_stepper(params.replace(z_steps=1, z_steps_coarse=None), real_dtype, device, compiled)
+        return functools.partial(split, passes=params.split_passes)
     step = _Step(params, real_dtype, device)
 
     def steps(wr, wi, K):

@@ -122,3 +122,18 @@ def test_split_integrator_needs_isotropic_kerr_coefficients():
         CavityParams(A=0.5, B=0.2)
     assert CavityParams(A=0.5, B=0.2, integrator="dop853").A == 0.5
     assert CavityParams(A=0.5, B=0.5).integrator == "split"
+
+
+def test_split_passes_default_explicit_and_refined():
+    assert CavityParams().split_passes == (10, 16)  # ceil(5 z_steps / 4) and 2 z_steps
+    assert [CavityParams(z_steps=z).split_passes for z in (1, 2, 4, 16)] == [(1, 2), (3, 4), (5, 8), (20, 32)]
+    old = CavityParams(z_steps_coarse=8.0)  # whole floats from config files become ints
+    assert old.split_passes == (8, 16) and type(old.z_steps_coarse) is int
+    assert CavityParams().refined(4).split_passes == (40, 64) and old.refined(4).split_passes == (32, 64)
+
+
+@pytest.mark.parametrize("kwargs", [dict(z_steps_coarse=16), dict(z_steps_coarse=0), dict(z_steps_coarse=9.5),
+                                    dict(z_steps_coarse=8, integrator="dop853"), dict(z_steps_coarse="8")])
+def test_invalid_coarse_pass_is_named(kwargs):
+    with pytest.raises(ValueError, match=r"CavityParams\.z_steps_coarse\b"):
+        CavityParams(**kwargs)
