@@ -17,7 +17,7 @@ Everything is measured in one run, so the ratios hold on a shared, noisy machine
 * accuracy: worst relative L2 error of one round trip against the stored
   high-accuracy reference solutions (``laserrl/data/cavity_reference.npz``);
 * with ``--compare-coarse-steps N``: the torch solver also with a coarse split-step pass of
-  N steps (``CavityParams(z_steps_coarse=N)``; 8 is the former (8, 16) default), timed in
+  N steps (``CavityParams(z_steps_coarse=N)``; 8 gives the classic (N, 2N) pair (8, 16)), timed in
   alternation with the default at each batch size, and the speed ratio of the two;
 * with ``--k-sweep``: instead of the timings, the worst one-round-trip error of the default
   solver (and of the comparison setting) over K in [-0.2, 0.4], several angle sets and sech
@@ -338,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--process-batch", type=int, default=256, help="batch size of each torch process")
     parser.add_argument("--compare-coarse-steps", type=int, default=None, metavar="N",
                         help="also time (and sweep) the split-step solver with an N-step coarse pass "
-                             "(CavityParams(z_steps_coarse=N); 8: the former (8, 16) default), in alternation "
+                             "(CavityParams(z_steps_coarse=N); 8: the classic (8, 16) pair), in alternation "
                              "with the default, and print the speed ratio")
     parser.add_argument("--compare-repeats", type=int, default=3,
                         help="alternating timings of default and comparison per batch size (median)")
