@@ -76,10 +76,11 @@ def check_collector_config(c: DictConfig) -> None:
     check_number(c.get("worker_threads"), "collector.worker_threads", low=1, integer=True, optional=True)
 
 
-def check_train_config(cfg: DictConfig) -> None:
+def check_train_config(cfg: DictConfig):
     """Everything a run will build, built once on a dry run before anything is written: each
     builder and dataclass checks its own values (its errors name the config key); checked here
-    are only the top-level keys and the rules that involve several groups."""
+    are only the top-level keys and the rules that involve several groups. Returns the env's
+    unbatched action spec (what the run's agent is built for)."""
     check_number(cfg.seed, "seed", low=0, high=2**32 - 1, integer=True)  # numpy's seed range
     check_number(cfg.threads, "threads", low=1, integer=True, optional=True)
     check_device(cfg.device)
@@ -107,6 +108,7 @@ def check_train_config(cfg: DictConfig) -> None:
         raise ConfigError(f"agent.n_steps={cfg.agent.n_steps} needs batches from every env in turn: use "
                           f"collector=sync, multi_sync or ray with collector.sync=true, not {c.kind}"
                           + (" with sync=false" if c.kind == "ray" else ""))
+    return env.action_spec_unbatched
 
 
 def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
@@ -127,13 +129,6 @@ def seed_everything(cfg: DictConfig) -> None:
     random.seed(cfg.seed)
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
-
-
-def action_spec_of(cfg: DictConfig):
-    """The unbatched action spec of the config's env (built once, for one cavity)."""
-    env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
-                   1, cfg.seed, cfg.device)
-    return env.action_spec_unbatched
 
 
 def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0, envs: dict | None = None):
@@ -252,14 +247,14 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     an error between batches, and on SIGTERM or Ctrl-C (which stop the run after the current batch).
     ``resume``: such a checkpoint (``laserrl.resume.load_run``) to continue, with ``cfg`` its config.
     """
-    check_train_config(cfg)
+    action_spec = check_train_config(cfg)
     loop = LoopSettings.from_config(cfg)
     run_dir = Path(cfg.run_dir)
     seed_everything(cfg)
     started = time.perf_counter()
 
     # --- the agent, its replay and n-step transform
-    agent = build_agent(cfg, action_spec_of(cfg))
+    agent = build_agent(cfg, action_spec)
     if cfg.init_from and resume is None:
         from laserrl.warmstart import warm_start
 
