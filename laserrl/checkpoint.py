@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -50,9 +52,17 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if not path.exists():
         raise CheckpointError(f"checkpoint not found: {path}")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        # weights_only: tensors and plain data only; a pickled object or call is refused, never run
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as err:
+        found = re.search(r"Unsupported global: GLOBAL (\S+)", str(err))
+        what = f" ({found.group(1)})" if found else ""
+        raise CheckpointError(f"checkpoint {path} holds pickled objects{what}, not only tensors and plain data; "
+                              "laserrl does not load such files (they can run code). If you made it yourself with "
+                              f"an older laserrl: python -m laserrl.checkpoint convert {path}") from None
     except Exception as err:  # truncated or foreign files fail in many ways inside torch
-        raise CheckpointError(f"checkpoint {path} is unreadable ({type(err).__name__}: {err})") from None
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise CheckpointError(f"checkpoint {path} is unreadable ({type(err).__name__}: {first})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT:
         raise CheckpointError(f"{path} is not a laserrl checkpoint")
     for key in ("qnet", "config", "num_actions"):
@@ -60,3 +70,53 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
             raise CheckpointError(f"checkpoint {path} lacks '{key}'")
     state["path"] = str(path)
     return state
+
+
+def convert_checkpoint(path: str | os.PathLike) -> Path:
+    """Rewrite a checkpoint of an older laserrl, whose numpy RNG state was pickled, as tensors and
+    plain data. This unpickles the file, which can run code: only for files you made yourself.
+    The original is kept as ``PATH.pickled``."""
+    path = Path(path)
+    kept = path.with_name(path.name + ".pickled")
+    if kept.exists():
+        raise CheckpointError(f"{kept} exists already; move it away first")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)  # trusted by the caller
+    except Exception as err:
+        raise CheckpointError(f"checkpoint {path} is unreadable ({type(err).__name__})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        raise CheckpointError(f"{path} is not a laserrl checkpoint")
+    rng = (state.get("resume") or {}).get("rng") or {}
+    if isinstance(rng.get("numpy"), tuple):
+        import numpy as np
+
+        kind, keys, pos, has_gauss, cached = rng["numpy"]
+        rng["numpy"] = {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys).astype(np.int64)),
+                        "pos": int(pos), "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
+    os.replace(path, kept)
+    state.pop("format", None)
+    save_checkpoint(state, path)
+    torch.load(path, map_location="cpu", weights_only=True)  # what load_checkpoint will read
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m laserrl.checkpoint convert PATH``: see ``convert_checkpoint``."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m laserrl.checkpoint")
+    sub = parser.add_subparsers(dest="command", required=True)
+    convert = sub.add_parser("convert", help="rewrite an older checkpoint you made yourself as tensors and plain data")
+    convert.add_argument("path")
+    args = parser.parse_args(argv)
+    try:
+        print(f"converted: {convert_checkpoint(args.path)} (original kept as {args.path}.pickled)")
+    except (CheckpointError, OSError) as err:
+        print(f"python -m laserrl.checkpoint: error: {err}".splitlines()[0], file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

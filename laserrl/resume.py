@@ -69,13 +69,19 @@ def env_seed(seed: int, frames: int) -> int:
 
 def rng_state() -> dict:
     """States of the global generators: torch (networks, exploration, uniform replay), numpy
-    (TorchRL's prioritized sampler) and Python's ``random``."""
-    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    (TorchRL's prioritized sampler) and Python's ``random``, as tensors and plain numbers (what
+    ``torch.load(weights_only=True)`` reads back)."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"torch": torch.get_rng_state(),
+            "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "pos": int(pos),
+                      "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+            "python": random.getstate()}
 
 
 def set_rng_state(state: Mapping[str, Any]) -> None:
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
+    n = state["numpy"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached_gaussian"]))
     random.setstate(state["python"])
 
 
