@@ -133,9 +133,7 @@ class LaserTask:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
         if finite_number(self.tol, "tol") < 0:
             raise ValueError(f"tol must be >= 0, got {self.tol!r}")
-        if self.min_round_trips > self.max_round_trips:
-            raise ValueError(f"min_round_trips ({self.min_round_trips}) must be <= max_round_trips "
-                             f"({self.max_round_trips})")
+        self.numerics  # StepNumerics checks the rules between the round-trip bounds
 
     @property
     def numerics(self) -> StepNumerics:
