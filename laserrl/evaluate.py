@@ -90,6 +90,7 @@ def check_eval_config(eval_cfg: Mapping[str, Any]) -> None:
     a bad one raises a ConfigError naming ``eval.KEY``."""
     for key in ("steps", "repeats", "max_round_trips", "min_round_trips"):
         check_number(eval_cfg.get(key), f"eval.{key}", low=1, integer=True, optional=True)
+    check_number(eval_cfg.get("seed"), "eval.seed", low=0, high=2**32 - 1, integer=True, optional=True)
     for key in ("success_r", "hold_r"):
         check_number(eval_cfg.get(key), f"eval.{key}", optional=True)
     for key in ("K", "starts_deg"):
@@ -106,8 +107,11 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     that it can read the action spec). Every combination of K in ``eval.K`` (the stage's K
     if empty), first-controlled-angle start in ``eval.starts_deg`` (the stage's start if
     empty) and ``eval.repeats`` copies runs as one batch; with noise initial fields each
-    copy draws its own noise from the env's seeded generator.
+    copy draws its own noise from the env's seeded generator, seeded by ``eval.seed`` (if
+    set) or ``seed``.
     """
+    if eval_cfg.get("seed") is not None:
+        seed = int(eval_cfg["seed"])
     # eval.* values left null take the stage's own protocol
     eval_cfg = {**dict(stage_cfg.get("protocol") or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
     for key in ("steps", "success_r"):
@@ -175,7 +179,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
                           "starts_deg": [min(starts), max(starts)]}
     return {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
-        "repeats": repeats, "max_round_trips": env_cfg["max_round_trips"],
+        "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
         "min_round_trips": min_round_trips(env_cfg), "K": Ks,
         "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,

@@ -57,6 +57,7 @@ class RunCounters:
     last_episode_r: float = float("nan")
     train_seconds: float = 0.0
     resumed_at_frames: list = field(default_factory=list)
+    best: dict | None = None  # train.keep_best: frames, success_rate, mean_final_reward of the kept weights
 
 
 def env_seed(seed: int, frames: int) -> int:

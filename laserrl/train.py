@@ -27,7 +27,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
-from laserrl.checkpoint import save_json
+from laserrl.checkpoint import save_checkpoint, save_json
 from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
                             optim_lr_decay)
 from laserrl.envs.factory import make_env
@@ -51,6 +51,7 @@ class LoopSettings:
     eval_every_frames: int | None = None
     stop_at_success: float | None = None
     checkpoint_every_frames: int | None = None
+    keep_best: bool = False
 
     def __post_init__(self):
         check_number(self.total_frames, "train.total_frames", low=1, integer=True)
@@ -60,12 +61,17 @@ class LoopSettings:
         check_number(self.checkpoint_every_frames, "train.checkpoint_every_frames", low=1, integer=True, optional=True)
         check_number(self.updates_per_frame, "optim.updates_per_frame", low=0, low_open=True)
         check_number(self.init_random_frames, "replay.init_random_frames", low=0, integer=True)
+        if not isinstance(self.keep_best, bool):
+            raise ConfigError(f"train.keep_best must be true or false, got {self.keep_best!r}")
+        if self.keep_best and not self.eval_every_frames:
+            raise ConfigError("train.keep_best needs train.eval_every_frames (the evaluations that choose the weights)")
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> "LoopSettings":
         t = cfg.train
         return cls(t.total_frames, cfg.optim.updates_per_frame, cfg.replay.init_random_frames, t.get("max_minutes"),
-                   t.get("eval_every_frames"), t.get("stop_at_success"), t.get("checkpoint_every_frames"))
+                   t.get("eval_every_frames"), t.get("stop_at_success"), t.get("checkpoint_every_frames"),
+                   t.get("keep_best", False))
 
 
 def check_collector_config(c: DictConfig) -> None:
@@ -167,19 +173,29 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0, env
     return cls([env_fn] * int(cfg.collector.num_workers), policy, **common, **no_policy_transforms)
 
 
-def greedy_success(cfg: DictConfig, actor, frames: int, logger) -> float:
-    """Periodic evaluation: the success rate of the greedy actor under the stage's protocol
-    (no plots, no files), logged as ``eval/success_rate`` at ``frames``."""
+def greedy_success(cfg: DictConfig, actor, frames: int, logger) -> tuple[float, float]:
+    """Periodic evaluation (validation): the success rate and mean final r of the greedy actor
+    under the stage's protocol with the run's seed (no plots, no files), logged as
+    ``eval/success_rate`` at ``frames``."""
     from laserrl.evaluate import evaluate_policy
 
-    eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), "plots": False}
+    eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), "plots": False, "seed": None}
     result = evaluate_policy(lambda env: actor, OmegaConf.to_container(cfg.env, resolve=True),
                              OmegaConf.to_container(cfg.stage, resolve=True), eval_cfg, int(cfg.seed))
-    success = float(result["success_rate"])
+    success, final_r = float(result["success_rate"]), float(result["mean_final_reward"])
     if logger is not None:
         logger.log_scalar("eval/success_rate", success, step=frames)
-    tqdm.write(f"frames {frames}: eval success rate {success:.2f}")
-    return success
+    tqdm.write(f"frames {frames}: eval success rate {success:.2f}, mean final r {final_r:.4f}")
+    return success, final_r
+
+
+def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success: float, final_r: float) -> None:
+    """``train.keep_best``: keep the Q-network's weights if they did better on the validation than
+    the kept ones (higher success rate; at equal success, higher mean final r)."""
+    if run.best is None or (success, final_r) > (run.best["success_rate"], run.best["mean_final_reward"]):
+        run.best = {"frames": run.frames, "success_rate": success, "mean_final_reward": final_r}
+        best_weights.clear()
+        best_weights.update({k: v.detach().clone() for k, v in agent.qnet.state_dict().items()})
 
 
 def env_snapshot(collector) -> dict | None:
@@ -191,7 +207,7 @@ def env_snapshot(collector) -> dict | None:
 
 
 def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig, logger, started: float,
-             envs=lambda: None, with_replay: bool = True) -> Path:
+             envs=lambda: None, best_weights: dict | None = None, with_replay: bool = True) -> Path:
     """Checkpoint the run as it stands (with the replay buffer unless ``with_replay`` is false,
     and the collector's episodes in flight, ``envs()``) and rewrite its history.json; returns
     the checkpoint path."""
@@ -200,12 +216,22 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "qnet": agent.qnet.state_dict(), "target": agent.target_weights(), "optimizer": agent.optimizer.state_dict(),
         "epsilon": float(agent.egreedy.eps), "frames": run.frames, "updates": run.updates,
         "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
-        "config": OmegaConf.to_container(cfg, resolve=True),
+        "config": OmegaConf.to_container(cfg, resolve=True), **({"best_qnet": best_weights} if best_weights else {}),
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)
     save_json(run.history, Path(cfg.run_dir) / "history.json")
     return path
+
+
+def save_best(cfg: DictConfig, run: RunCounters, agent: DQNAgent, best_weights: dict) -> Path:
+    """``train.keep_best``: the kept weights as ``checkpoints/best.pt`` (no training state: for
+    evaluation and warm starts); returns its path."""
+    print(f"keeping the weights of frame {run.best['frames']} (validation success {run.best['success_rate']:.2f}, "
+          f"mean final r {run.best['mean_final_reward']:.4f})")
+    return save_checkpoint({"qnet": best_weights, "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
+                            "frames": run.frames, "best": run.best, "config": OmegaConf.to_container(cfg, resolve=True)},
+                           Path(cfg.run_dir) / "checkpoints" / "best.pt")
 
 
 def store(replay, n_step, data) -> None:
@@ -277,8 +303,10 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if logger is not None:
         log_config(logger, cfg)
     collector, envs_at_shutdown = None, None
+    # train.keep_best: the weights that did best on the periodic validation (saved with the run)
+    best_weights = dict(resume["best_qnet"]) if resume is not None and "best_qnet" in resume else {}
     save = partial(save_run, saver, agent, run, cfg, logger, started,
-                   lambda: env_snapshot(collector) if collector is not None else envs_at_shutdown)
+                   lambda: env_snapshot(collector) if collector is not None else envs_at_shutdown, best_weights)
 
     # --- budgets: frames decide; train.max_minutes is a safety net
     eval_every, every, target_rate = loop.eval_every_frames, loop.checkpoint_every_frames, loop.stop_at_success
@@ -286,7 +314,9 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     max_seconds = 60.0 * loop.max_minutes if loop.max_minutes else math.inf
     if eval_every and target_rate is not None and resume is None:
         # a warm-started policy may already meet the target: then it needs no frames at all
-        success = greedy_success(cfg, agent.actor, 0, logger)
+        success, final_r = greedy_success(cfg, agent.actor, 0, logger)
+        if loop.keep_best:
+            keep_if_best(run, agent, best_weights, success, final_r)
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
         if success >= target_rate:
             run.frames_to_success = 0
@@ -326,7 +356,10 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 bar.set_postfix(ep_r=f"{run.last_episode_r:.3f}", r=f"{record['train/r_mean']:.3f}",
                                 eps=f"{record['train/epsilon']:.2f}", refresh=False)
                 if run.frames >= run.next_eval:  # greedy evaluation during training (the stage's protocol)
-                    success = record["eval/success_rate"] = greedy_success(cfg, agent.actor, run.frames, logger)
+                    success, final_r = greedy_success(cfg, agent.actor, run.frames, logger)
+                    record["eval/success_rate"] = success
+                    if loop.keep_best:
+                        keep_if_best(run, agent, best_weights, success, final_r)
                     run.next_eval += eval_every
                     if target_rate is not None and success >= target_rate:
                         run.frames_to_success = run.frames
@@ -354,7 +387,11 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if stop.signum is not None:
         save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))
+    if loop.keep_best and not (run.history and run.history[-1].get("eval/success_rate") is not None):
+        keep_if_best(run, agent, best_weights, *greedy_success(cfg, agent.actor, run.frames, logger))  # the last weights
     ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
+    if loop.keep_best:
+        ckpt_path = save_best(cfg, run, agent, best_weights)
     summary = finish(cfg, run, ckpt_path, logger, started)
     print(f"checkpoint: {ckpt_path}")
     return summary
@@ -367,10 +404,15 @@ def finish(cfg: DictConfig, run: RunCounters, ckpt_path: Path, logger, started: 
                "checkpoint": str(ckpt_path), "frames_to_success": run.frames_to_success}
     if run.resumed_at_frames:
         summary["resumed_at_frames"] = run.resumed_at_frames
+    if run.best is not None:
+        summary["best"] = run.best
     if cfg.eval.after_training:
         from laserrl.evaluate import evaluate_checkpoint
 
-        result = evaluate_checkpoint(str(ckpt_path), cfg.eval, run_dir)
+        eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
+        if eval_cfg.get("seed") is None and run.best is not None:
+            eval_cfg["seed"] = int(cfg.seed) + 1  # fresh draws: not those that chose the weights
+        result = evaluate_checkpoint(str(ckpt_path), eval_cfg, run_dir)
         summary.update({f"eval/{k}": v for k, v in result.items() if not isinstance(v, (list, dict))})
         if logger is not None:
             for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock"):
