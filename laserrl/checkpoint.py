@@ -101,7 +101,8 @@ def convert_checkpoint(path: str | os.PathLike) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m laserrl.checkpoint convert PATH``: see ``convert_checkpoint``."""
+    """``python -m laserrl.checkpoint convert PATH``: see ``convert_checkpoint``. (The model of
+    a checkpoint, to share: ``python -m laserrl.model export PATH``.)"""
     import argparse
     import sys
 

@@ -8,7 +8,8 @@ final r >= ``eval.success_r`` (0.18), or, with ``eval.hold_r`` set, r reaches
 several times with its own initial noise. Writes ``eval.json`` (and a plot) into the run
 directory and prints its path.
 
-    laserrl-eval checkpoint=outputs/2026-11-22/10-00-00/checkpoints/last.pt
+    laserrl-eval checkpoint=zoo:siso                      # a model shipped with laserrl (laserrl-zoo list)
+    laserrl-eval checkpoint=outputs/2026-11-22/10-00-00   # a run directory (its model/)
     laserrl-eval checkpoint=RUN_DIR eval.K=0.2           # any K
     laserrl-eval checkpoint=RUN_DIR 'eval.K=[0,0.1,0.2]'  # several K at once
 """
@@ -23,7 +24,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_actor, make_qnet
-from laserrl.checkpoint import CheckpointError, load_checkpoint
+from laserrl.checkpoint import CheckpointError
+from laserrl.model import load_model
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
@@ -207,7 +209,7 @@ def write_eval(result: dict, out_dir: str | Path, plots: bool = True, kind: str 
 
 def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None) -> dict:
     """Run the protocol for one checkpoint; returns and writes the eval.json content."""
-    state = load_checkpoint(checkpoint)
+    state = load_model(checkpoint)
     cfg = state["config"]
     stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
     result = evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched), cfg["env"], stage_cfg, eval_cfg,
@@ -248,7 +250,7 @@ def _load_member(entry, index: int) -> list[dict]:
     paths = [entry] if isinstance(entry, (str, Path)) else list(entry)
     if not paths or not all(isinstance(p, (str, Path)) for p in paths):
         raise ConfigError(f"bank[{index}]: give a checkpoint path or a list of paths (an ensemble), got {entry!r}")
-    states = [load_checkpoint(p) for p in paths]
+    states = [load_model(p) for p in paths]
     Ks = [_stage_K(st) for st in states]
     if any(k != Ks[0] for k in Ks):
         raise ConfigError(f"bank[{index}]: the models of an ensemble must be trained at the same K, got "
@@ -303,7 +305,7 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
                         "mean_final_reward": sum(v["mean_final_reward"] for v in nearest_by_K.values()) / len(Ks),
                         "by_K": nearest_by_K}
     if single:
-        state = load_checkpoint(single)
+        state = load_model(single)
         rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
     result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members], "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,

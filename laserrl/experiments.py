@@ -11,6 +11,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
+from laserrl.checkpoint import CheckpointError
 from laserrl.config import ConfigError
 from laserrl.paths import CONF_DIR
 from laserrl.train import train
@@ -44,7 +45,7 @@ def run_curriculum(cfg: DictConfig) -> dict:
         sub = OmegaConf.merge(sub, {"train": {key: values[i] for key, values in per_stage.items()}})
         print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
         summary = train(sub)
-        previous = summary["checkpoint"]
+        previous = summary["model"]
     return summary
 
 
@@ -63,9 +64,13 @@ def run_transfer(cfg: DictConfig) -> dict:
     success of each, and their ratio). Returns the mean fine-tune / scratch frame ratio."""
     t = cfg.transfer
     if not t.base:
-        raise ConfigError("transfer.base: give the checkpoint to fine-tune, e.g. transfer.base=RUN/checkpoints/last.pt")
-    if not Path(t.base).exists():
-        raise ConfigError(f"transfer.base: no such checkpoint {t.base}")
+        raise ConfigError("transfer.base: give the model to fine-tune, e.g. transfer.base=zoo:siso or a run directory")
+    from laserrl.model import load_model
+
+    try:
+        load_model(t.base)
+    except CheckpointError as err:
+        raise ConfigError(f"transfer.base: {err}") from None
     if cfg.train.get("stop_at_success") is None or not cfg.train.get("eval_every_frames"):
         raise ConfigError("transfer needs train.eval_every_frames and train.stop_at_success to count frames to success")
     by_K = _settings_by_K(t.get("by_K"))

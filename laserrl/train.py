@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import random
+import shlex
 import time
 from dataclasses import dataclass
 from functools import partial
@@ -27,7 +28,8 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
-from laserrl.checkpoint import save_checkpoint, save_json
+from laserrl.checkpoint import save_json
+from laserrl.model import model_metadata, package_version, save_model, update_model_meta
 from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
                             optim_lr_decay)
 from laserrl.envs.factory import make_env
@@ -220,18 +222,31 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)
+    save_model(Path(cfg.run_dir) / "model", best_weights or agent.qnet.state_dict(),
+               model_metadata(OmegaConf.to_container(cfg, resolve=True), agent.qnet.num_actions, frames=run.frames,
+                              best=run.best, card=model_card(cfg, run)), replace=True)
     save_json(run.history, Path(cfg.run_dir) / "history.json")
     return path
 
 
-def save_best(cfg: DictConfig, run: RunCounters, agent: DQNAgent, best_weights: dict) -> Path:
-    """``train.keep_best``: the kept weights as ``checkpoints/best.pt`` (no training state: for
-    evaluation and warm starts); returns its path."""
-    print(f"keeping the weights of frame {run.best['frames']} (validation success {run.best['success_rate']:.2f}, "
-          f"mean final r {run.best['mean_final_reward']:.4f})")
-    return save_checkpoint({"qnet": best_weights, "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
-                            "frames": run.frames, "best": run.best, "config": OmegaConf.to_container(cfg, resolve=True)},
-                           Path(cfg.run_dir) / "checkpoints" / "best.pt")
+def model_card(cfg: DictConfig, run: RunCounters) -> dict:
+    """How the run's model came about: the command (when run by laserrl-train), the commit of
+    the code, the machine, the date, frames and training time."""
+    import datetime
+
+    from laserrl.model import git_commit, machine_line
+
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        overrides = list(HydraConfig.get().overrides.task)
+        command = " ".join(["laserrl-train", *(shlex.quote(o) for o in overrides)])
+    except ValueError:  # not run by the Hydra app
+        command = None
+    return {"command": command, "commit": git_commit(), "laserrl_version": package_version(), "machine": machine_line(),
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"), "seed": int(cfg.seed),
+            "frames": run.frames, "episodes": run.frames // int(cfg.stage.max_steps), "train_seconds": round(run.train_seconds, 1),
+            "resumed_at_frames": list(run.resumed_at_frames)}
 
 
 def store(replay, n_step, data) -> None:
@@ -390,8 +405,9 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     if loop.keep_best and not (run.history and run.history[-1].get("eval/success_rate") is not None):
         keep_if_best(run, agent, best_weights, *greedy_success(cfg, agent.actor, run.frames, logger))  # the last weights
     ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
-    if loop.keep_best:
-        ckpt_path = save_best(cfg, run, agent, best_weights)
+    if run.best is not None:
+        print(f"the model keeps the weights of frame {run.best['frames']} (validation success "
+              f"{run.best['success_rate']:.2f}, mean final r {run.best['mean_final_reward']:.4f})")
     summary = finish(cfg, run, ckpt_path, logger, started)
     print(f"checkpoint: {ckpt_path}")
     return summary
@@ -400,8 +416,9 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
 def finish(cfg: DictConfig, run: RunCounters, ckpt_path: Path, logger, started: float) -> dict:
     """After training: evaluate the checkpoint with the stage's protocol, plot, write summary.json."""
     run_dir = Path(cfg.run_dir)
+    model = run_dir / "model"
     summary = {"train_seconds": run.train_seconds, "frames": run.frames, "updates": run.updates,
-               "checkpoint": str(ckpt_path), "frames_to_success": run.frames_to_success}
+               "checkpoint": str(ckpt_path), "model": str(model), "frames_to_success": run.frames_to_success}
     if run.resumed_at_frames:
         summary["resumed_at_frames"] = run.resumed_at_frames
     if run.best is not None:
@@ -412,7 +429,8 @@ def finish(cfg: DictConfig, run: RunCounters, ckpt_path: Path, logger, started: 
         eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
         if eval_cfg.get("seed") is None and run.best is not None:
             eval_cfg["seed"] = int(cfg.seed) + 1  # fresh draws: not those that chose the weights
-        result = evaluate_checkpoint(str(ckpt_path), eval_cfg, run_dir)
+        result = evaluate_checkpoint(str(model), eval_cfg, run_dir)
+        update_model_meta(model, eval={k: v for k, v in result.items() if k != "per_start"})
         summary.update({f"eval/{k}": v for k, v in result.items() if not isinstance(v, (list, dict))})
         if logger is not None:
             for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock"):

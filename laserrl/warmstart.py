@@ -16,7 +16,8 @@ from typing import Sequence
 import torch
 
 from laserrl.agents.qnet import FieldQNet
-from laserrl.checkpoint import CheckpointError, load_checkpoint
+from laserrl.checkpoint import CheckpointError
+from laserrl.model import load_model
 
 __all__ = ["warm_start", "head_mapping"]
 
@@ -45,10 +46,10 @@ def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | Non
 
     Args:
         qnet: the new network (its head may be larger than the checkpoint's).
-        checkpoint: path of a checkpoint or run directory.
+        checkpoint: a model (``laserrl.model.model_dir``: zoo:NAME, a model or run directory).
         controlled: the angles the new stage controls (needed only when the head grows).
     """
-    state = load_checkpoint(checkpoint)
+    state = load_model(checkpoint)
     weights = dict(state["qnet"])
     old_n, new_n = int(state["num_actions"]), qnet.num_actions
     old_controlled = list(state["config"].get("stage", {}).get("controlled", []))

@@ -1,5 +1,6 @@
-"""A checkpoint from someone else cannot run code: a pickle whose payload calls a function is
-refused by every entry point that takes a checkpoint, with one line, and the payload never runs."""
+"""A checkpoint or model from someone else cannot run code: a pickle whose payload calls a
+function, as a torch checkpoint or posing as a model's safetensors, is refused by every entry
+point that takes one, with one line, and the payload never runs."""
 import os
 import pickle
 import subprocess
@@ -70,19 +71,49 @@ def test_convert_keeps_the_original_and_refuses_to_overwrite(tmp_path):
         convert_checkpoint(path)
 
 
-@pytest.mark.parametrize("command, args", [
-    ("laserrl-eval", ["checkpoint={ckpt}"]),
-    ("laserrl-control", ["controller=rl", "scenario=constant", "checkpoint={ckpt}", "num_cavities=1", "scenario.steps=2"]),
-    ("laserrl-train", ["experiment=smoke", "init_from={ckpt}"]),
-    ("laserrl-train", ["resume={run}"]),
-])
-def test_every_entry_point_refuses_the_payload_with_one_line(tmp_path, command, args):
-    path, marker = _evil(tmp_path)
+def _evil_model(tmp_path: Path) -> tuple[Path, Path]:
+    """A run directory whose model/ looks right, with a pickle payload as model.safetensors."""
+    marker = tmp_path / "payload-ran"
+    model = tmp_path / "evil-run" / "model"
+    model.mkdir(parents=True)
+    with open(model / "model.safetensors", "wb") as f:
+        pickle.dump(_Payload(marker), f)
+    (model / "model.json").write_text('{"format": "laserrl-model-1", "num_actions": 3, "config": {"env": {}, '
+                                      '"agent": {}, "stage": {"controlled": ["alpha1"], "steps_deg": [2.0]}}}')
+    return model.parent, marker
+
+
+ENTRY_POINTS = [
+    ("laserrl-eval", ["checkpoint={model}"]),
+    ("laserrl-control", ["controller=rl", "scenario=constant", "checkpoint={model}", "num_cavities=1", "scenario.steps=2"]),
+    ("laserrl-train", ["experiment=smoke", "init_from={model}"]),
+]
+
+
+def _run(command: str, args: list[str], tmp_path: Path) -> list[str]:
     exe = Path(sys.executable).parent / command
-    args = [a.format(ckpt=path, run=path.parent.parent) for a in args]
     res = subprocess.run([str(exe), *args, f"hydra.run.dir={tmp_path / 'out'}"], cwd=tmp_path, capture_output=True,
                          text=True, timeout=300)
     assert res.returncode != 0 and "Traceback" not in res.stderr, res.stderr[-2000:]
     errors = [line for line in res.stderr.splitlines() if "error" in line.lower()]
-    assert len(errors) == 1 and "holds pickled objects" in errors[0], res.stderr[-2000:]
+    assert len(errors) == 1, res.stderr[-2000:]
+    return errors
+
+
+@pytest.mark.parametrize("command, args", ENTRY_POINTS + [("laserrl-train", ["resume={run}"])])
+def test_every_entry_point_refuses_a_pickled_checkpoint_with_one_line(tmp_path, command, args):
+    """Models are read as safetensors + JSON: a torch checkpoint given as a model is refused
+    before it is opened (with the export command); resume= reads it with weights_only."""
+    path, marker = _evil(tmp_path)
+    errors = _run(command, [a.format(model=path, run=path.parent.parent) for a in args], tmp_path)
+    expected = "holds pickled objects" if "resume" in args[0] else "python -m laserrl.model export"
+    assert expected in errors[0], errors
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("command, args", ENTRY_POINTS)
+def test_every_entry_point_refuses_a_pickle_posing_as_a_model(tmp_path, command, args):
+    run, marker = _evil_model(tmp_path)
+    errors = _run(command, [a.format(model=run) for a in args], tmp_path)
+    assert "model.safetensors is unreadable" in errors[0], errors
     assert not marker.exists()

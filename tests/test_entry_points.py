@@ -32,6 +32,14 @@ def test_train_writes_checkpoint_eval_and_prints_path(trained):
     for key in ("qnet", "target", "optimizer", "epsilon", "frames", "updates", "config"):
         assert key in state
     assert state["frames"] >= 64 and state["config"]["stage"]["name"] == "siso"
+    # the shareable model next to it: the same weights, its evaluation and card in model.json
+    from laserrl.model import load_model
+
+    model = load_model(out)
+    assert model["dir"] == str(out / "model") and all(torch.equal(model["qnet"][k], v) for k, v in state["qnet"].items())
+    assert model["meta"]["eval"]["success_rate"] == json.loads((out / "eval.json").read_text())["success_rate"]
+    card = model["meta"]["card"]
+    assert card["command"].startswith("laserrl-train experiment=smoke") and card["frames"] == state["frames"]
     result = json.loads((out / "eval.json").read_text())
     assert len(result["per_start"]) == 2 and 0.0 <= result["success_rate"] <= 1.0
     assert all(len(p["angle_path_deg"]) == 3 for p in result["per_start"])
@@ -64,8 +72,8 @@ def _one_line_error(res, *words):
 
 
 def test_missing_checkpoint(tmp_path):
-    res = run("laserrl-eval", f"checkpoint={tmp_path}/nope.pt", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
-    _one_line_error(res, "checkpoint not found")
+    res = run("laserrl-eval", f"checkpoint={tmp_path}/nope", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    _one_line_error(res, "model not found")
 
 
 def test_incompatible_head(trained, tmp_path):
@@ -74,10 +82,13 @@ def test_incompatible_head(trained, tmp_path):
     _one_line_error(res, "3-action head", "9 actions")
 
 
-def test_truncated_checkpoint(trained, tmp_path):
+def test_truncated_model(trained, tmp_path):
+    import shutil
+
     out, _ = trained
-    bad = tmp_path / "bad.pt"
-    bad.write_bytes((out / "checkpoints" / "last.pt").read_bytes()[:500])
+    bad = tmp_path / "bad"
+    shutil.copytree(out / "model", bad)
+    (bad / "model.safetensors").write_bytes((out / "model" / "model.safetensors").read_bytes()[:500])
     res = run("laserrl-eval", f"checkpoint={bad}", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     _one_line_error(res, "unreadable")
 
@@ -139,7 +150,7 @@ def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
     first = torch.load(tmp_path / "01-siso" / "checkpoints" / "last.pt", weights_only=False)
     second = torch.load(tmp_path / "02-duo" / "checkpoints" / "last.pt", weights_only=False)
     assert (first["num_actions"], second["num_actions"]) == (3, 9)
-    assert second["config"]["init_from"] == str(tmp_path / "01-siso" / "checkpoints" / "last.pt")
+    assert second["config"]["init_from"] == str(tmp_path / "01-siso" / "model")
     assert res.stdout.index("stage 1/2: siso") < res.stdout.index("stage 2/2: duo")
     # each stage is evaluated with its own protocol: siso from 16 alpha1 starts, duo from 5, with hold_r
     ev1 = json.loads((tmp_path / "01-siso" / "eval.json").read_text())
@@ -152,7 +163,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     """experiment=transfer_k fine-tunes the base to another K (and trains from scratch),
     counting frames to success; laserrl-eval then evaluates base + fine-tuned as a bank."""
     base, _ = trained
-    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
               "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=64", "transfer.scratch.train.total_frames=64",
               "train.eval_every_frames=32", "train.stop_at_success=0.0", "eval.steps=2", "eval.starts_deg=[-30]",
               "+transfer.by_K={0:{stage:{max_steps:3}},0.3:{stage:{max_steps:5}}}",
@@ -167,13 +178,13 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     # a success-rate target of 0 is met by the evaluation before training: no frames needed
     assert row["K"] == 0.0 and row["finetune"]["frames_to_success"] == 0 == row["scratch"]["frames_to_success"]
     assert row["finetune"]["frames"] == 0
-    tuned = tmp_path / "K+0.00-finetune" / "checkpoints" / "last.pt"
-    state = torch.load(tuned, weights_only=False)
-    assert state["config"]["stage"]["K"] == 0.0 and state["config"]["init_from"].endswith("last.pt")
+    tuned = tmp_path / "K+0.00-finetune" / "model"
+    state = torch.load(tmp_path / "K+0.00-finetune" / "checkpoints" / "last.pt", weights_only=False)
+    assert state["config"]["stage"]["K"] == 0.0 and state["config"]["init_from"] == str(base)
     table = (tmp_path / "transfer.md").read_text()
     assert "| 0 |" in table
     # run again in the same directory: finished sub-runs are reused, not retrained
-    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
               "transfer.Ks=[0.0]", "train.eval_every_frames=32", "train.stop_at_success=0.0",
               f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -181,7 +192,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
 
     ev = tmp_path / "bank"
     # the second member is an ensemble (a list of checkpoints trained at the same K)
-    res = run("laserrl-eval", f"checkpoint={base}/checkpoints/last.pt", f"bank=[{base}/checkpoints/last.pt,[{tuned},{tuned}]]",
+    res = run("laserrl-eval", f"checkpoint={base}", f"bank=[{base},[{tuned},{tuned}]]",
               "eval.K=[0.0,0.1,0.3]", "eval.steps=2", "eval.starts_deg=[-30]", "eval.compile=false",
               f"hydra.run.dir={ev}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -194,7 +205,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     assert [v["model"] for v in result["rules"]["nearest"]["by_K"].values()] == [1, 0, 0]
     assert (ev / "generalisation.png").stat().st_size > 0
     # an ensemble of models trained at different K is refused, naming the entry, before any evaluation
-    res = run("laserrl-eval", f"bank=[{tuned},[{tuned},{base}/checkpoints/last.pt]]", "eval.K=[0.0]",
+    res = run("laserrl-eval", f"bank=[{tuned},[{tuned},{base}]]", "eval.K=[0.0]",
               f"hydra.run.dir={tmp_path / 'bad_bank'}", cwd=tmp_path)
     _one_line_error(res, "bank[1]")
     assert not (tmp_path / "bad_bank" / "eval.json").exists()
@@ -202,7 +213,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
 
 def test_transfer_rejects_a_non_numeric_K_setting(trained, tmp_path):
     base, _ = trained
-    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}/checkpoints/last.pt",
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
               "+transfer.by_K={warm:{stage:{max_steps:3}}}", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     _one_line_error(res, "transfer.by_K")
     assert not (tmp_path / "transfer.json").exists()

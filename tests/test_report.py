@@ -22,7 +22,8 @@ CONF = Path(CONF_DIR)
 
 # every model trained on the spot in seconds: tiny physics, few frames, 3-step protocols
 TINY = [
-    "threads=1",
+    "threads=1", "report.checkpoints.siso=null", "report.checkpoints.duo=null", "report.checkpoints.miso=null",
+    "report.train_bank=true",
     "+report.train.common.env={num_envs:8,max_round_trips:5,compile:false,physics:{n:64,z_steps:2}}",
     "+report.train.common.collector.frames_per_batch=32", "+report.train.common.replay.init_random_frames=32",
     "+report.train.common.optim.batch_size=16",
@@ -102,13 +103,14 @@ def _compose(tmp_path, *overrides):
 
 
 def test_bad_input_names_the_input_and_keeps_the_old_report(smoke, tmp_path):
-    siso = smoke[0] / "run" / "train" / "siso" / "checkpoints" / "last.pt"
+    siso = smoke[0] / "run" / "train" / "siso"
     (tmp_path / "docs").mkdir()
     old = tmp_path / "docs" / "reproduction.md"
     old.write_text("earlier report")
     cases = [
         ((f"report.checkpoints.duo={siso}",), ConfigError, r"report.checkpoints.duo: .* controls \['alpha1'\]"),
-        ((f"report.checkpoints.miso={tmp_path}/nope.pt",), CheckpointError, "checkpoint not found"),
+        ((f"report.checkpoints.miso={tmp_path}/nope",), CheckpointError, "model not found"),
+        (("report.checkpoints.miso=zoo:nope",), CheckpointError, "zoo:nope: no such model in the zoo"),
         ((f"report.results.transfer=[{tmp_path}/transfer.json]",), ConfigError, "report.results.transfer: no such file"),
         (("report.figures=[fig9]",), ConfigError, r"report.figures: unknown figure\(s\) \['fig9'\]"),
         (("report.landscape.alpha1_deg=[0,-10,2]",), ConfigError, r"report.landscape.alpha1_deg must have first < last"),
@@ -130,23 +132,38 @@ def test_grids_and_overrides():
 
 
 def test_a_bank_model_fine_tuned_again_over_a_K_range_counts_every_fine_tuning(tmp_path):
-    from laserrl.checkpoint import FORMAT
+    import shutil
+
+    from laserrl.model import load_model, model_metadata, save_model
     from laserrl.report.claims import _K_text, _finetune_episodes
 
     def save(name, frames, max_steps, K, init_from):
-        path = tmp_path / f"{name}.pt"
-        torch.save({"format": FORMAT, "qnet": {}, "num_actions": 3, "frames": frames,
-                    "config": {"stage": {"K": K, "max_steps": max_steps}, "init_from": init_from}}, path)
-        return str(path)
+        config = {"env": {}, "agent": {}, "init_from": init_from,
+                  "stage": {"K": K, "max_steps": max_steps, "controlled": ["alpha1"], "steps_deg": [2.0]}}
+        return str(save_model(tmp_path / name, {"w": torch.zeros(1)}, model_metadata(config, 3, frames=frames)))
 
     base = save("base", 40960, 20, 0.1, None)  # trained from scratch: not counted
     point = save("point", 6400, 40, 0.4, base)  # 160 episodes
     ranged = save("ranged", 1280, 40, [0.3, 0.4], point)  # 32 more
-    assert _finetune_episodes(torch.load(ranged, weights_only=False)) == 192
-    assert _finetune_episodes(torch.load(point, weights_only=False)) == 160
-    Path(point).unlink()  # a parent that is gone ends the chain
-    assert _finetune_episodes(torch.load(ranged, weights_only=False)) == 32
+    assert _finetune_episodes(load_model(ranged)) == 192
+    assert _finetune_episodes(load_model(point)) == 160
+    shutil.rmtree(point)  # a parent that is gone ends the chain
+    assert _finetune_episodes(load_model(ranged)) == 32
     assert _K_text([0.3, 0.4]) == "[0.3, 0.4]" and _K_text(-0.2) == "-0.2"
+
+
+def test_without_a_bank_the_rows_about_other_K_say_they_are_not_backed_by_the_zoo():
+    from types import SimpleNamespace
+
+    from laserrl.report.claims import _K_bank, _K_single, _episodes_finetune
+    from laserrl.report.context import NOT_IN_ZOO
+    from laserrl.report.figures import FigureSkipped, fig6_generalisation
+
+    ctx = SimpleNamespace(bank=[], cfg={"results": {"generalisation": None, "transfer": []}}, has_generalisation=False)
+    for row in (_K_single(ctx), _K_bank(ctx), _episodes_finetune(ctx)):
+        assert row.laserrl == NOT_IN_ZOO and row.paper
+    with pytest.raises(FigureSkipped, match="not backed by the zoo"):
+        fig6_generalisation(ctx, Path("unused.png"))
 
 
 def test_bank_entries_keep_ensembles_and_bank_paths_flattens_them():

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from laserrl.checkpoint import load_checkpoint
+from laserrl.model import load_model
 from laserrl.config import ConfigError, _number
 from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillClimbParams, RandomSearch, RandomSearchParams
 from laserrl.control.esc import ESCParams, ExtremumSeeking
@@ -51,7 +51,7 @@ def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavitie
                      rl_steps_deg=None, where: str = "controller"):
     """The controller ``name`` from its config; ``rl_policy`` (greedy TensorDict policy) for rl/hybrid."""
     if name in NEEDS_CHECKPOINT and rl_policy is None:
-        raise ConfigError(f"controller {name} needs a DQN: give checkpoint=PATH (a laserrl-train checkpoint)")
+        raise ConfigError(f"controller {name} needs a DQN: give checkpoint=MODEL (zoo:NAME or a laserrl-train run directory)")
     try:
         if name == "esc":
             return ExtremumSeeking(_params(ESCParams, ccfg, where), controlled, num_cavities)
@@ -162,7 +162,7 @@ def run_control(cfg: DictConfig) -> dict:
     if cfg.checkpoint:
         from laserrl.evaluate import load_agent
 
-        state = load_checkpoint(cfg.checkpoint)
+        state = load_model(cfg.checkpoint)
         stage = state["config"]["stage"]
         env_cfg = dict(state["config"]["env"])  # the per-step physics the DQN was trained with
         rl_controlled = list(stage["controlled"])
@@ -173,8 +173,8 @@ def run_control(cfg: DictConfig) -> dict:
         steps_deg = list(stage["steps_deg"])
         policy_for = lambda plant: load_agent(state, plant.env.action_spec_unbatched)  # noqa: E731
     elif any(n in NEEDS_CHECKPOINT for n in names):
-        raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=PATH "
-                          "(a laserrl-train checkpoint)")
+        raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=MODEL "
+                          "(zoo:NAME or a laserrl-train run directory)")
     controlled = list(controlled or ["alpha1"])
     if cfg.compile is not None:
         env_cfg["compile"] = bool(cfg.compile)

@@ -1,9 +1,10 @@
 """``laserrl-report``: regenerate the paper's figures and docs/reproduction.md (laserrl/conf/report.yaml).
 
+    laserrl-report      # the zoo's models (zoo:siso, zoo:duo, zoo:miso)
     laserrl-report report.checkpoints.siso=RUN report.checkpoints.duo=CURR/02-duo \
         report.checkpoints.miso=CURR/03-miso 'report.checkpoints.bank=[K0,K0.2,K0.4]' \
         'report.results.transfer=[T/transfer.json]' report.results.generalisation=G/eval.json
-    laserrl-report      # no checkpoints: train small models on the spot first (weaker numbers)
+    laserrl-report report.checkpoints.siso=null ...   # null: train small models on the spot first
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from laserrl.checkpoint import load_checkpoint
+from laserrl.model import load_model as read_model
 from laserrl.config import ConfigError
 from laserrl.report.claims import build_claims, markdown, to_json
 from laserrl.report.context import (ReportContext, bank_entries, bank_paths, grid, load_model, producing_command,
@@ -79,14 +80,15 @@ def run_report(cfg: DictConfig) -> dict:
     bank = bank_entries(rcfg["checkpoints"].get("bank"))
     models = {role: load_model(path, role) for role, path in checkpoints.items() if path}  # fail fast
     for path in bank_paths(bank):
-        load_checkpoint(path)
-    trained = train_missing(rcfg["train"], run_dir, checkpoints, bank, rcfg["results"])
+        read_model(path)
+    trained = train_missing(rcfg["train"], run_dir, checkpoints, bank, rcfg["results"], bool(rcfg.get("train_bank")))
     for role in ("siso", "duo", "miso"):
         if role in trained:
             models[role] = load_model(checkpoints[role], role, trained[role]["command"])
         commands[role] = models[role].command or f"(not recorded: {models[role].path})"
-    commands["bank"] = (trained["bank"]["command"] if "bank" in trained else
-                        "; ".join(dict.fromkeys(producing_command(p) or p for p in bank_paths(bank))))
+    if bank:
+        commands["bank"] = (trained["bank"]["command"] if "bank" in trained else
+                            "; ".join(dict.fromkeys(producing_command(p) or p for p in bank_paths(bank))))
     ctx = ReportContext(rcfg, run_dir, models, bank, commands, int(cfg.seed))
     ctx.run_commands.update({Path(r["run_dir"]).resolve(): r["command"] for r in trained.values()})
     figures = draw_figures(ctx, out_dir / "figures", rcfg["figures"])

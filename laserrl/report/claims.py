@@ -12,8 +12,9 @@ from pathlib import Path
 from typing import Callable
 
 from laserrl.analysis.landscape import interval_width, intervals
-from laserrl.checkpoint import CheckpointError, load_checkpoint
-from laserrl.report.context import bank_paths
+from laserrl.checkpoint import CheckpointError
+from laserrl.model import load_model
+from laserrl.report.context import NOT_IN_ZOO, bank_paths
 
 REQUIRED = ("r_modelocked", "r_planewave", "alpha1_starts", "alpha1_lock_range", "hysteresis", "hysteresis_width",
             "episodes_train", "episodes_finetune", "K_single", "K_bank")
@@ -50,6 +51,10 @@ def _Ks(values: list[float], ok: list[bool]) -> str:
     if not iv:
         return "none"
     return ", ".join(f"[{lo:g}, {hi:g}]" if lo != hi else f"{lo:g}" for lo, hi in iv)
+
+
+def _not_in_zoo(key: str, text: str, paper: str) -> Claim:
+    return Claim(key, text, paper, NOT_IN_ZOO, [], "")
 
 
 # ---------------------------------------------------------------------------------- bistability
@@ -212,6 +217,9 @@ def _episodes_train(ctx) -> Claim:
 
 @claim("episodes_finetune")
 def _episodes_finetune(ctx) -> Claim:
+    if not ctx.bank and not ctx.cfg["results"].get("transfer"):
+        return _not_in_zoo("episodes_finetune", "Episodes to fine-tune the K = 0.1 agent to another K (transfer "
+                           "learning)", "~300 on average")
     rows = ctx.transfer
     parts, sources = [], []
     for path in sorted({r["file"] for r in rows}):
@@ -228,10 +236,10 @@ def _episodes_finetune(ctx) -> Claim:
         parts.append(f"to greedy success >= 0.9: {per_K} ({mean})")
     bank = []
     for path in bank_paths(ctx.bank):  # every model of an ensemble was fine-tuned on its own
-        state = load_checkpoint(path)
+        state = load_model(path)
         cfg = state["config"]
         if cfg.get("init_from"):
-            run = Path(path).parent.parent if Path(path).parent.name == "checkpoints" else Path(path)
+            run = Path(state["dir"]).parent if Path(state["dir"]).name == "model" else Path(state["dir"])
             ev = json.loads((run / "eval.json").read_text()) if (run / "eval.json").exists() else {}
             bank.append((_K_text(cfg["stage"]["K"]), _finetune_episodes(state), ev.get("success_rate")))
     if bank:
@@ -256,6 +264,9 @@ def _rule(ctx, name: str) -> tuple[list[float], list[bool]]:
 
 @claim("K_single")
 def _K_single(ctx) -> Claim:
+    if not ctx.has_generalisation:
+        return _not_in_zoo("K_single", "One model trained at K = 0.1 controls the laser at other K",
+                           "K from -0.2 to 0.4 except a few")
     g = ctx.generalisation
     ctx.commands.setdefault("generalisation", _generalisation_command(ctx))
     if "single" not in g["rules"]:
@@ -271,6 +282,9 @@ def _K_single(ctx) -> Claim:
 
 @claim("K_bank")
 def _K_bank(ctx) -> Claim:
+    if not ctx.has_generalisation:
+        return _not_in_zoo("K_bank", "A bank of fine-tuned models covers the whole K range",
+                           "all K in -0.2 .. 0.4 (4 models, K = -0.2, 0, 0.2, 0.4)")
     g = ctx.generalisation
     ctx.commands.setdefault("generalisation", _generalisation_command(ctx))
     parts = []
@@ -335,7 +349,7 @@ def _finetune_episodes(state: dict, depth: int = 8) -> float:
     parent = state["config"].get("init_from")
     if parent and depth > 0:
         try:
-            parent_state = load_checkpoint(parent)
+            parent_state = load_model(parent)
         except CheckpointError:
             return episodes
         if parent_state["config"].get("init_from"):

@@ -17,7 +17,7 @@ from typing import Any, Mapping
 import torch
 
 from laserrl.analysis import (StepSettings, cold_landscape, follow_paths, full_angles, settle, straight_path, sweep)
-from laserrl.checkpoint import load_checkpoint
+from laserrl.model import load_model as read_model
 from laserrl.config import ConfigError
 from laserrl.envs.factory import make_params, make_task
 from laserrl.envs.laser_env import ANGLE_NAMES
@@ -26,6 +26,10 @@ from laserrl.evaluate import _stage_base_angles, evaluate_bank, evaluate_policy,
 
 #: the angles each model of the report controls
 ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES)}
+NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K ships with laserrl yet (the paper ran "
+              "these experiments with four controllers); give report.checkpoints.bank and report.results.*, "
+              "or see docs/experiments.md for the single-input variant")
+
 APPS = {"train": "laserrl-train", "evaluate": "laserrl-eval", "app": "laserrl-report"}
 
 
@@ -50,14 +54,6 @@ def widen(values: torch.Tensor, low: float, high: float) -> torch.Tensor:
     first -= step * max(0, math.ceil((first - low) / step - 1e-9))
     last += step * max(0, math.ceil((high - last) / step - 1e-9))
     return first + step * torch.arange(round((last - first) / step) + 1, dtype=torch.float64)
-
-
-def run_dir_of(path: str | Path) -> Path:
-    """The run directory of a checkpoint file (RUN/checkpoints/last.pt) or the directory itself."""
-    path = Path(path)
-    if path.is_dir():
-        return path
-    return path.parent.parent if path.parent.name == "checkpoints" else path.parent
 
 
 def producing_command(path: str | Path) -> str | None:
@@ -110,7 +106,10 @@ class Model:
 
     @property
     def run_dir(self) -> Path:
-        return run_dir_of(self.path)
+        """Where the model's training record lies (history.json, eval.json): its run directory,
+        or the zoo model's own directory."""
+        directory = Path(self.state["dir"])
+        return directory.parent if directory.name == "model" else directory
 
     @property
     def K(self) -> float:
@@ -128,13 +127,17 @@ class Model:
 
 
 def load_model(path: str, role: str, command: str | None = None) -> Model:
-    """Load the checkpoint ``path`` for ``role`` and check that it controls the right angles."""
-    state = load_checkpoint(path)
+    """Load the model ``path`` (zoo:NAME, a run or model directory) for ``role`` and check that
+    it controls the right angles. Its command: ``command``, else its model card's, else its
+    run's ``.hydra`` record."""
+    state = read_model(path)
     controlled = tuple(state["config"]["stage"]["controlled"])
     if controlled != ROLES[role]:
         raise ConfigError(f"report.checkpoints.{role}: {path} controls {list(controlled)}; the {role} figures need a "
                           f"model controlling {list(ROLES[role])}")
-    return Model(role, state["path"], state, command or producing_command(state["path"]))
+    card = state["meta"].get("card") or {}
+    recorded = card.get("command") and card["command"] + (f"  ({state['path']})" if str(path).startswith("zoo:") else "")
+    return Model(role, state["path"], state, command or recorded or producing_command(state["dir"]))
 
 
 def read_json(path: str | Path, key: str) -> Any:
@@ -340,6 +343,10 @@ class ReportContext:
                 "protocol_source": source}
 
     # ---------------------------------------------------------------- fig. 6 and training numbers
+    @property
+    def has_generalisation(self) -> bool:
+        return bool(self.cfg["results"].get("generalisation") or self.bank)
+
     @cached_property
     def generalisation(self) -> dict:
         """A bank evaluation's eval.json: the given one, or evaluated here (bank + the siso model)."""
@@ -390,7 +397,7 @@ class ReportContext:
                 ft = row["finetune"]
                 sub = Path(path).parent / f"K{row['K']:+.2f}-finetune"
                 try:
-                    max_steps = int(load_checkpoint(sub)["config"]["stage"]["max_steps"])
+                    max_steps = int(read_model(sub)["config"]["stage"]["max_steps"])
                 except Exception:  # the sub-run's checkpoint is gone: frames only
                     max_steps = None
                 frames = ft["frames_to_success"]
@@ -413,7 +420,7 @@ class ReportContext:
         for d in dirs:
             if not (d / "summary.json").exists():
                 raise ConfigError(f"report.results.train_to_success: {d} has no summary.json (not a finished training run)")
-            state = load_checkpoint(d)
+            state = read_model(d)
             target = state["config"]["train"].get("stop_at_success") or 0.9
             frames = frames_to_success(d, target)
             max_steps = int(state["config"]["stage"]["max_steps"])

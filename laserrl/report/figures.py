@@ -224,6 +224,10 @@ def fig5_miso(ctx, path: Path) -> None:
 @figure("fig6_generalisation", "fig. 6", "Generalisation across K: success rate of one model (trained at K = 0.1) "
         "and of the bank (nearest-K rule, which knows K; highest-Q rule, which does not) at each K of the grid.")
 def fig6_generalisation(ctx, path: Path) -> None:
+    if not ctx.has_generalisation:
+        from laserrl.report.context import NOT_IN_ZOO
+
+        raise FigureSkipped(NOT_IN_ZOO)
     plot_generalisation(ctx.generalisation, path)
 
 

@@ -64,8 +64,10 @@ def as_overrides(*layers: Mapping[str, Any]) -> list[str]:
     return [f"{key}={_value(value)}" for key, value in flat.items()]
 
 
-def train_missing(train_cfg: dict, run_dir: Path, checkpoints: dict, bank: list[str], results: dict) -> dict:
-    """Train what ``checkpoints`` (role -> path or None) and ``bank`` lack into ``run_dir/train``.
+def train_missing(train_cfg: dict, run_dir: Path, checkpoints: dict, bank: list[str], results: dict,
+                  train_bank: bool = False) -> dict:
+    """Train what ``checkpoints`` (role -> model or None) lack, and with ``train_bank`` an empty
+    ``bank``, into ``run_dir/train``.
 
     Fills in ``checkpoints``, ``bank`` and (if empty) ``results["transfer"]`` in place;
     returns label -> {"command", "minutes", "run_dir"} of every run trained.
@@ -88,16 +90,16 @@ def train_missing(train_cfg: dict, run_dir: Path, checkpoints: dict, bank: list[
 
     if not checkpoints.get("siso"):
         sub, _ = run("siso", {}, train)
-        checkpoints["siso"] = str(sub / "checkpoints" / "last.pt")
+        checkpoints["siso"] = str(sub / "model")
     if not checkpoints.get("duo"):
         sub, _ = run("duo", {"init_from": checkpoints["siso"]}, train)
-        checkpoints["duo"] = str(sub / "checkpoints" / "last.pt")
+        checkpoints["duo"] = str(sub / "model")
     if not checkpoints.get("miso"):
         sub, _ = run("miso", {"init_from": checkpoints["duo"]}, train)
-        checkpoints["miso"] = str(sub / "checkpoints" / "last.pt")
-    if not bank:
+        checkpoints["miso"] = str(sub / "model")
+    if not bank and train_bank:
         sub, cfg = run("bank", {"transfer": {"base": checkpoints["siso"]}}, run_transfer)
-        bank.extend(str(sub / f"K{float(K):+.2f}-finetune" / "checkpoints" / "last.pt") for K in cfg.transfer.Ks)
+        bank.extend(str(sub / f"K{float(K):+.2f}-finetune" / "model") for K in cfg.transfer.Ks)
         if not results.get("transfer"):
             results["transfer"] = [str(sub / "transfer.json")]
     return runs

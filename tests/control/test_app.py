@@ -35,7 +35,7 @@ def checkpoint(tmp_path_factory):
     cfg = _compose(["experiment=smoke", *SMOKE_PHYSICS[:2], f"run_dir={out}", "train.progress=false",
                     "eval.plots=false"], name="config")
     train(cfg)
-    return out / "checkpoints" / "last.pt"
+    return out / "model"
 
 
 def test_controller_groups():

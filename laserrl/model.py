@@ -1,0 +1,310 @@
+"""Models people can share: the Q-network's weights as safetensors, everything else as JSON.
+
+A model is a directory::
+
+    model.safetensors   the Q-network's tensors (safetensors holds arrays only: nothing in it can run)
+    model.json          format, laserrl version, the task (stage, controlled angles, action encoding, K),
+                        the physics, the full training config, the evaluation on the task's protocol
+                        and the model card (command, commit, machine, frames, training time)
+
+Loading reads the JSON with ``json`` and the tensors with ``safetensors``; nothing is unpickled.
+``laserrl-train`` writes ``RUN/model`` next to ``RUN/checkpoints``, whose training state
+(optimizer, generators, replay buffer) serves ``resume=`` only (``laserrl.checkpoint``).
+
+Wherever a model is accepted, ``zoo:NAME`` names one shipped with laserrl (``laserrl.zoo``),
+and a run directory (``RUN`` or a curriculum stage ``RUN/03-miso``) names its ``model``.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import re
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+
+from laserrl.checkpoint import FORMAT as CHECKPOINT_FORMAT
+from laserrl.checkpoint import CheckpointError, load_checkpoint
+
+FORMAT = "laserrl-model-1"
+WEIGHTS, META = "model.safetensors", "model.json"
+ZOO_PREFIX = "zoo:"
+MAX_META_BYTES = 20_000_000  # a model.json is a few KB; refuse to parse anything absurd
+#: how a joint action (an integer) maps to plate moves; laserrl.envs.laser_env.action_to_deltas
+ACTION_ENCODING = ("base 3 over the controlled angles, first angle least significant; digit 0, 1, 2 turns that "
+                   "angle by -step, 0, +step")
+
+
+class ModelError(CheckpointError):
+    """A model is missing, unreadable or not a laserrl model."""
+
+
+#: the models shipped with laserrl (``laserrl.zoo``)
+ZOO_DIR = Path(__file__).resolve().parent / "zoo"
+_ZOO_NAME = re.compile(r"^[a-z0-9][a-z0-9.+-]*$")
+
+
+def zoo_names() -> list[str]:
+    return sorted(d.name for d in ZOO_DIR.iterdir() if (d / META).is_file()) if ZOO_DIR.is_dir() else []
+
+
+def zoo_path(name: str) -> Path:
+    """The directory of ``zoo:NAME``; a ModelError lists the zoo if there is no such model."""
+    if not _ZOO_NAME.match(name) or not (ZOO_DIR / name / META).is_file():
+        raise ModelError(f"zoo:{name}: no such model in the zoo; models: {', '.join(zoo_names()) or 'none'} "
+                         "(laserrl-zoo list)")
+    return ZOO_DIR / name
+
+
+def package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("laserrl")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def cpu_name() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return cpu
+
+
+def machine_line() -> str:
+    """CPU model, cores and Python, e.g. for a model card."""
+    return f"{cpu_name()}, {os.cpu_count()} cores, torch {torch.__version__}, Python {platform.python_version()}"
+
+
+def git_commit(where: str | os.PathLike | None = None) -> str | None:
+    """The commit of the laserrl checkout that runs (None for an installed wheel)."""
+    import subprocess
+
+    where = Path(where or Path(__file__).parent)
+    try:
+        out = subprocess.run(["git", "-C", str(where), "rev-parse", "HEAD"], capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "-C", str(where), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    if out.returncode != 0:
+        return None
+    return out.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
+def model_metadata(config: Mapping[str, Any], num_actions: int, **extra) -> dict:
+    """model.json for a network trained with ``config`` (a plain dict) and a ``num_actions`` head."""
+    stage = dict(config["stage"])
+    return {
+        "format": FORMAT, "laserrl_version": package_version(), "stage": stage.get("name"),
+        "num_actions": int(num_actions),
+        "actions": {"controlled": list(stage["controlled"]), "steps_deg": list(stage["steps_deg"]),
+                    "encoding": ACTION_ENCODING},
+        "K": stage.get("K"), "physics": dict(config["env"].get("physics", {})),
+        "observation": "fields",
+        "config": dict(config), **extra,
+    }
+
+
+def _finite(obj):
+    """JSON without NaN / inf (which the standard forbids): they become null."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def save_model(directory: str | os.PathLike, weights: Mapping[str, torch.Tensor], meta: Mapping[str, Any],
+               replace: bool = False) -> Path:
+    """Write a model directory (written beside it, then renamed into place). An existing
+    ``directory`` is replaced only with ``replace`` (a run's own model); otherwise refused."""
+    from safetensors.torch import save_file
+
+    directory = Path(directory)
+    if directory.exists() and not replace:
+        raise ModelError(f"{directory} exists already; choose another directory or move it away")
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}.", suffix=".tmp"))
+    try:
+        tensors = {k: v.detach().to("cpu").contiguous() for k, v in weights.items()}
+        save_file(tensors, str(tmp / WEIGHTS), metadata={"format": FORMAT})
+        (tmp / META).write_text(json.dumps(_finite(dict(meta)), indent=1, allow_nan=False))
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp's 0700 would keep a shared model from its readers
+        for f in (WEIGHTS, META):
+            os.chmod(tmp / f, 0o666 & ~umask)
+        old = None
+        if directory.exists():
+            old = directory.with_name(f".{directory.name}.old")
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(directory, old)
+        os.replace(tmp, directory)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return directory
+
+
+def update_model_meta(directory: str | os.PathLike, **changes) -> Path:
+    """Merge ``changes`` into a model's model.json (written, then renamed)."""
+    path = Path(directory) / META
+    meta = json.loads(path.read_text())
+    meta.update(changes)
+    tmp = path.with_name(META + ".tmp")
+    tmp.write_text(json.dumps(_finite(meta), indent=1, allow_nan=False))
+    os.replace(tmp, path)
+    return path
+
+
+def model_dir(spec: str | os.PathLike) -> Path:
+    """The model directory that ``spec`` names: ``zoo:NAME``, a model directory, its
+    model.json or model.safetensors, or a run directory holding ``model``."""
+    text = str(spec)
+    if text.startswith(ZOO_PREFIX):
+        return zoo_path(text[len(ZOO_PREFIX):])
+    path = Path(spec)
+    if path.is_file() and path.name in (META, WEIGHTS):
+        return path.parent
+    if path.is_dir():
+        if (path / META).exists() or (path / WEIGHTS).exists():
+            return path
+        if (path / "model" / META).exists():
+            return path / "model"
+        for old in (path / "checkpoints" / "last.pt", path / "last.pt"):
+            if old.exists():
+                raise ModelError(f"{path} holds a training checkpoint ({old.name}) but no model; write its model "
+                                 f"with: python -m laserrl.model export {old}")
+        raise ModelError(f"no model in {path}: expected {META} and {WEIGHTS}, or a run directory with model/")
+    if path.is_file():
+        if path.suffix == ".pt" or _is_torch_file(path):
+            raise ModelError(f"{path} is a training checkpoint (torch format), not a model; laserrl reads models as "
+                             f"safetensors + JSON. Write its model with: python -m laserrl.model export {path}")
+        raise ModelError(f"{path} is not a laserrl model: give its directory (with {META} and {WEIGHTS}) or zoo:NAME")
+    raise ModelError(f"model not found: {path}")
+
+
+def _is_torch_file(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+        return head == b"PK\x03\x04" or head[:1] == b"\x80"  # torch's zip format, or a pickle (protocol >= 2)
+    except OSError:
+        return False
+
+
+def read_meta(directory: Path) -> dict:
+    path = directory / META
+    if not path.is_file():
+        raise ModelError(f"model {directory} has no {META}")
+    if path.stat().st_size > MAX_META_BYTES:
+        raise ModelError(f"{path} is {path.stat().st_size} bytes; a model.json is a few KB, refusing to read it")
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ModelError(f"{path} is not valid JSON ({type(err).__name__}: {str(err).splitlines()[0]})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+        raise ModelError(f"{path} is not a laserrl model (format {found!r}, expected {FORMAT!r})")
+    config = meta.get("config")
+    if not (isinstance(config, dict) and all(isinstance(config.get(k), dict) for k in ("env", "stage", "agent"))):
+        raise ModelError(f"{path} lacks the training config (config.env, config.stage, config.agent)")
+    stage = config["stage"]
+    if not (isinstance(stage.get("controlled"), list) and isinstance(stage.get("steps_deg"), list)):
+        raise ModelError(f"{path}: config.stage lacks its controlled angles and steps")
+    n = meta.get("num_actions")
+    if not isinstance(n, int) or isinstance(n, bool) or n != 3 ** len(stage["controlled"]):
+        raise ModelError(f"{path}: num_actions {n!r} does not fit {len(stage['controlled'])} controlled angles")
+    return meta
+
+
+def read_weights(directory: Path) -> dict[str, torch.Tensor]:
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    path = directory / WEIGHTS
+    if not path.is_file():
+        raise ModelError(f"model {directory} has no {WEIGHTS}")
+    try:
+        weights = load_file(str(path), device="cpu")
+    except (SafetensorError, OSError, ValueError, RuntimeError) as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else ""
+        raise ModelError(f"{path} is unreadable ({type(err).__name__}: {first})") from None
+    bad = [k for k, v in weights.items() if not v.is_floating_point()]
+    if bad or not weights:
+        raise ModelError(f"{path} holds no Q-network (tensors {bad or 'none'})")
+    return weights
+
+
+def load_model(spec: str | os.PathLike) -> dict:
+    """Read a model (see ``model_dir`` for what ``spec`` may be). Returns what a caller needs
+    to rebuild and run it: ``qnet`` (tensors), ``config``, ``num_actions``, ``stage``,
+    ``path`` (the model directory, or ``zoo:NAME``) and ``meta`` (all of model.json).
+    Raises ``ModelError`` with one line for anything missing, malformed or foreign."""
+    directory = model_dir(spec)
+    meta = read_meta(directory)
+    weights = read_weights(directory)
+    shown = str(spec) if str(spec).startswith(ZOO_PREFIX) else str(directory)
+    frames = meta.get("frames", (meta.get("card") or {}).get("frames"))
+    return {"qnet": weights, "config": meta["config"], "num_actions": meta["num_actions"], "stage": meta.get("stage"),
+            "frames": frames, "path": shown, "dir": str(directory), "meta": meta}
+
+
+def export_checkpoint(checkpoint: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
+    """Write the model of a training checkpoint (``RUN/checkpoints/last.pt`` or ``best.pt``)
+    into ``out`` (default: ``RUN/model``); refuses to overwrite. The checkpoint is read with
+    ``torch.load(weights_only=True)``: a checkpoint holding pickled objects is refused (its
+    message names ``python -m laserrl.checkpoint convert`` for files one made oneself). The
+    weights exported are those a ``train.keep_best`` run kept, else the last ones."""
+    state = load_checkpoint(checkpoint)
+    ckpt = Path(state["path"])
+    run = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
+    out = Path(out) if out is not None else run / "model"
+    weights = state.get("best_qnet") or state["qnet"]
+    meta = model_metadata(state["config"], state["num_actions"], frames=state.get("frames"),
+                          exported_from=str(ckpt), checkpoint_format=CHECKPOINT_FORMAT)
+    summary = run / "summary.json"
+    if summary.exists():
+        s = json.loads(summary.read_text())
+        meta["card"] = {"frames": s.get("frames"), "train_seconds": s.get("train_seconds")}
+        if s.get("best"):
+            meta["best"] = s["best"]
+    return save_model(out, weights, meta)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m laserrl.model export CHECKPOINT [OUT]``: see ``export_checkpoint``."""
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(prog="python -m laserrl.model")
+    sub = parser.add_subparsers(dest="command", required=True)
+    export = sub.add_parser("export", help="write the model (safetensors + JSON) of a training checkpoint")
+    export.add_argument("path", help="RUN/checkpoints/last.pt (or the run directory)")
+    export.add_argument("out", nargs="?", help="model directory to write (default: RUN/model)")
+    args = parser.parse_args(argv)
+    try:
+        print(f"model: {export_checkpoint(args.path, args.out)}")
+    except (CheckpointError, OSError) as err:
+        print(f"python -m laserrl.model: error: {err}".splitlines()[0], file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

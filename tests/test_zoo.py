@@ -1,0 +1,78 @@
+"""The model zoo: every shipped model loads by name, is small, carries a full model card, and
+re-evaluated on its protocol gives the success its card records."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from laserrl import zoo
+from laserrl.evaluate import evaluate_checkpoint
+from laserrl.model import load_model
+
+NAMES = zoo.names()
+
+
+def test_the_zoo_holds_the_models_the_docs_cite():
+    assert {"siso", "duo", "miso"} <= set(NAMES)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_zoo_model_is_small_and_has_a_model_card(name):
+    assert zoo.size(name) < zoo.MAX_BYTES
+    state = load_model(f"zoo:{name}")
+    card = state["meta"]["card"]
+    for key in ("command", "commit", "machine", "date", "frames", "train_seconds"):
+        assert card.get(key), (name, key)
+    assert card["command"].startswith("laserrl-train") and "hydra.run.dir" not in card["command"]
+    assert state["meta"]["eval"]["success_rate"] is not None
+    text = zoo.describe(name)
+    assert f"zoo:{name}" in text and card["command"] in text and f"{card['frames']} frames" in text
+
+
+def _short_protocol(name: str, recorded: dict) -> dict:
+    """The recorded evaluation's own settings (seed, starts, repeats), with the physics compiled off."""
+    keep = ("steps", "success_r", "hold_r", "repeats", "seed", "K", "max_round_trips", "min_round_trips")
+    eval_cfg = {k: recorded.get(k) for k in keep}
+    eval_cfg["starts_deg"] = sorted({p["initial_angle_deg"] for p in recorded["per_start"]})
+    return {**eval_cfg, "compile": False, "plots": False}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_every_zoo_model_reproduces_its_recorded_success(name, tmp_path):
+    """The card's evaluation, rerun: the same rollouts (the recorded seed and starts) succeed. A
+    different CPU may round differently; one rollout may flip."""
+    recorded = json.loads((zoo.zoo_path(name) / "eval.json").read_text())
+    assert recorded["success_rate"] == load_model(f"zoo:{name}")["meta"]["eval"]["success_rate"]
+    result = evaluate_checkpoint(f"zoo:{name}", _short_protocol(name, recorded), tmp_path)
+    n = len(recorded["per_start"])
+    assert len(result["per_start"]) == n
+    assert abs(result["success_rate"] - recorded["success_rate"]) <= 1.0 / n + 1e-9, (result["success_rate"], recorded)
+
+
+def test_the_zoo_command_lists_and_describes(tmp_path):
+    exe = Path(sys.executable).parent / "laserrl-zoo"
+    res = subprocess.run([str(exe), "list"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and all(f"zoo:{n}" in res.stdout for n in NAMES), res.stderr
+    res = subprocess.run([str(exe), "describe", "zoo:siso"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0 and "trained by:" in res.stdout and "evaluation:" in res.stdout
+    res = subprocess.run([str(exe), "describe", "nope"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and "zoo:nope: no such model" in res.stderr
+
+
+def test_add_copies_a_run_into_the_zoo_and_refuses_an_existing_name(tmp_path, monkeypatch):
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(zoo.zoo_path("siso"), run / "model")
+    (run / "history.json").write_text("[]")
+    monkeypatch.setattr("laserrl.model.ZOO_DIR", tmp_path / "zoo")
+    (tmp_path / "zoo").mkdir()
+    target = zoo.add(run, "test-model", notes="a copy")
+    assert load_model("zoo:test-model")["meta"]["card"]["notes"] == "a copy"
+    assert (target / "history.json").read_text() == "[]"
+    with pytest.raises(zoo.ModelError, match="exists already"):
+        zoo.add(run, "test-model")
+    with pytest.raises(zoo.ModelError, match="lower-case"):
+        zoo.add(run, "Bad/Name")
