@@ -140,6 +140,8 @@ class RunSaver:
             tmp = self.dir / f"{name}.tmp"
             shutil.rmtree(tmp, ignore_errors=True)
             self.replay.dumps(tmp)
+            # TorchRL pickles its prefetch queue (empty here: no prefetch); the loader refuses pickles
+            (tmp / "prefetch.pkl").unlink(missing_ok=True)
             shutil.rmtree(self.dir / name, ignore_errors=True)  # an unreferenced leftover of a killed run
             os.replace(tmp, self.dir / name)
         # the transitions stored: with n-step returns fewer than the frames (the last n steps wait for their returns)
@@ -166,11 +168,27 @@ def load_run(path: str | os.PathLike) -> dict:
         replay_dir = ckpt.parent / state["replay"]
         if not (replay_dir / "buffer_metadata.json").is_file():
             raise CheckpointError(f"checkpoint {ckpt} names the replay buffer {replay_dir}, which is missing or incomplete")
+        check_replay_files(replay_dir)
         state["replay_dir"] = str(replay_dir)
     elif state["frames"] > 0:
         raise CheckpointError(f"checkpoint {ckpt} was saved without its replay buffer (train.keep_replay=false), so "
                               f"the run cannot continue; use it with init_from= to warm-start a new run instead")
     return state
+
+
+#: what a replay buffer directory written by laserrl holds: memory-mapped arrays and JSON
+REPLAY_SUFFIXES = (".memmap", ".json")
+
+
+def check_replay_files(replay_dir: Path) -> None:
+    """Refuse a replay buffer directory holding anything but memory-mapped arrays and JSON:
+    TorchRL's loader would unpickle some other files (a prefetch queue, non-tensor fields),
+    which can run code."""
+    for path in sorted(Path(replay_dir).rglob("*")):
+        if path.is_file() and path.suffix not in REPLAY_SUFFIXES:
+            raise CheckpointError(f"replay buffer {replay_dir} holds {path.relative_to(replay_dir)}, which laserrl "
+                                  "does not load (only .memmap arrays and .json; other files can run code). If you "
+                                  "wrote this run yourself with an older laserrl, delete that file and resume again")
 
 
 def load_replay(replay, state: Mapping[str, Any]) -> None:

@@ -117,3 +117,35 @@ def test_every_entry_point_refuses_a_pickle_posing_as_a_model(tmp_path, command,
     errors = _run(command, [a.format(model=run) for a in args], tmp_path)
     assert "model.safetensors is unreadable" in errors[0], errors
     assert not marker.exists()
+
+
+def test_resume_refuses_a_replay_buffer_holding_a_pickle(tmp_path):
+    """TorchRL's replay loader unpickles a prefetch queue (and non-tensor fields) if present;
+    laserrl writes none and refuses to resume from a buffer that holds one."""
+    from laserrl.resume import load_run
+
+    marker = tmp_path / "payload-ran"
+    ckpt = tmp_path / "run" / "checkpoints" / "last.pt"
+    replay = ckpt.parent / "replay-0000000064"
+    replay.mkdir(parents=True)
+    (replay / "buffer_metadata.json").write_text("{}")
+    with open(replay / "prefetch.pkl", "wb") as f:
+        pickle.dump(_Payload(marker), f)
+    torch.save({"format": "laserrl-checkpoint-1", "qnet": {}, "config": {}, "num_actions": 3, "frames": 64,
+                "replay": replay.name, "resume": {}}, ckpt)
+    with pytest.raises(CheckpointError, match=r"holds prefetch.pkl, which laserrl does not load") as info:
+        load_run(tmp_path / "run")
+    assert "\n" not in str(info.value) and not marker.exists()
+
+
+def test_a_saved_replay_buffer_holds_only_arrays_and_json(tmp_path):
+    from laserrl.agents.dqn import make_replay
+    from laserrl.resume import REPLAY_SUFFIXES, RunSaver
+    from tensordict import TensorDict
+
+    replay = make_replay("prioritized", 16, 4, 0.6, 0.4)
+    replay.extend(TensorDict(obs=torch.zeros(8, 3), batch_size=[8]))
+    saver = RunSaver(tmp_path, replay)
+    saver.save({"frames": 8, "qnet": {}, "config": {}, "num_actions": 3})
+    files = [p for p in (tmp_path / "checkpoints").rglob("*") if p.is_file() and p.name != "last.pt"]
+    assert files and all(p.suffix in REPLAY_SUFFIXES for p in files), sorted({p.name for p in files})

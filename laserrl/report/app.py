@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import shlex
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from laserrl.model import load_model as read_model
+from laserrl.model import load_model as read_model, machine_line
 from laserrl.config import ConfigError
 from laserrl.report.claims import build_claims, markdown, to_json
 from laserrl.report.context import (ReportContext, bank_entries, bank_paths, grid, load_model, producing_command,
@@ -94,7 +93,8 @@ def run_report(cfg: DictConfig) -> dict:
     figures = draw_figures(ctx, out_dir / "figures", rcfg["figures"])
     rows = build_claims(ctx)
     minutes = (time.perf_counter() - started) / 60
-    meta = {"machine": f"{platform.machine()} CPU, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}",
+    meta = {"machine": f"{machine_line()}, torch threads {torch.get_num_threads()}",
+            "date": time.strftime("%Y-%m-%d"),
             "load": f"{load_start:.1f} at the start, {os.getloadavg()[0]:.1f} at the end",
             "minutes": minutes, "training_minutes": sum(r["minutes"] for r in trained.values()),
             "trained_on_the_spot": trained}

@@ -2,7 +2,8 @@ import pytest
 import torch
 
 from laserrl.agents import FieldQNet
-from laserrl.checkpoint import CheckpointError, save_checkpoint
+from laserrl.checkpoint import CheckpointError
+from laserrl.model import model_metadata, save_model
 from laserrl.envs import action_to_deltas
 from laserrl.warmstart import head_mapping, warm_start
 
@@ -25,8 +26,8 @@ def test_head_mapping_inherits_the_old_action_that_moves_old_angles_alike():
 
 
 def _checkpoint(tmp_path, qnet, controlled):
-    return str(save_checkpoint({"qnet": qnet.state_dict(), "num_actions": qnet.num_actions, "stage": "s",
-                                "config": {"stage": {"controlled": controlled}}}, tmp_path / "c.pt"))
+    config = {"env": {}, "agent": {}, "stage": {"name": "s", "controlled": controlled, "steps_deg": [2.0] * len(controlled)}}
+    return str(save_model(tmp_path / "c", qnet.state_dict(), model_metadata(config, qnet.num_actions)))
 
 
 def test_grown_network_reproduces_old_q_values_and_copies_other_layers(tmp_path):

@@ -69,7 +69,7 @@ def _run(overrides, tmp_path):
     (["controller=esc", "controller.gain=-1"], "controller: gain"),
     (["controller=esc", "controller.frequency.alpha2=0.125", "controlled=[alpha1,alpha2]"], "controller: frequency"),
     (["controller=ga", "controller.elite=9"], "elite"),
-    (["controller=hybrid"], "checkpoint=PATH"),
+    (["controller=hybrid"], "checkpoint=MODEL"),
     (["controller=esc", "num_cavities=0"], "num_cavities"),
     (["controller=esc", "controlled=[alpha7]"], "controlled"),
     (["controller=esc", "metric=speed"], "metric"),
