@@ -100,23 +100,31 @@ def convert_checkpoint(path: str | os.PathLike) -> Path:
     return path
 
 
+def one_line_errors(prog: str, command) -> int:
+    """Run ``command()`` for a small command-line tool: 0, or 2 after one line on stderr for a
+    CheckpointError (a ModelError) or OSError."""
+    import sys
+
+    try:
+        command()
+    except (CheckpointError, OSError) as err:
+        print(f"{prog}: error: {err}".splitlines()[0], file=sys.stderr)
+        return 2
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m laserrl.checkpoint convert PATH``: see ``convert_checkpoint``. (The model of
     a checkpoint, to share: ``python -m laserrl.model export PATH``.)"""
     import argparse
-    import sys
 
     parser = argparse.ArgumentParser(prog="python -m laserrl.checkpoint")
     sub = parser.add_subparsers(dest="command", required=True)
     convert = sub.add_parser("convert", help="rewrite an older checkpoint you made yourself as tensors and plain data")
     convert.add_argument("path")
     args = parser.parse_args(argv)
-    try:
-        print(f"converted: {convert_checkpoint(args.path)} (original kept as {args.path}.pickled)")
-    except (CheckpointError, OSError) as err:
-        print(f"python -m laserrl.checkpoint: error: {err}".splitlines()[0], file=sys.stderr)
-        return 2
-    return 0
+    return one_line_errors(parser.prog, lambda: print(f"converted: {convert_checkpoint(args.path)} "
+                                                      f"(original kept as {args.path}.pickled)"))
 
 
 if __name__ == "__main__":

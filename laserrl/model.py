@@ -290,7 +290,8 @@ def export_checkpoint(checkpoint: str | os.PathLike, out: str | os.PathLike | No
 def main(argv: list[str] | None = None) -> int:
     """``python -m laserrl.model export CHECKPOINT [OUT]``: see ``export_checkpoint``."""
     import argparse
-    import sys
+
+    from laserrl.checkpoint import one_line_errors
 
     parser = argparse.ArgumentParser(prog="python -m laserrl.model")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -298,12 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     export.add_argument("path", help="RUN/checkpoints/last.pt (or the run directory)")
     export.add_argument("out", nargs="?", help="model directory to write (default: RUN/model)")
     args = parser.parse_args(argv)
-    try:
-        print(f"model: {export_checkpoint(args.path, args.out)}")
-    except (CheckpointError, OSError) as err:
-        print(f"python -m laserrl.model: error: {err}".splitlines()[0], file=sys.stderr)
-        return 2
-    return 0
+    return one_line_errors(parser.prog, lambda: print(f"model: {export_checkpoint(args.path, args.out)}"))
 
 
 if __name__ == "__main__":

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 from laserrl import model as _model
+from laserrl.checkpoint import one_line_errors
 from laserrl.model import META, WEIGHTS, ModelError, read_meta, zoo_path
 
 MAX_BYTES = 2_000_000  # a zoo model with its files: weights (~0.6 MB) and JSON
@@ -120,7 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     adding.add_argument("--card", action="append", default=[], metavar="KEY=VALUE",
                         help="set a model card field (JSON values are parsed: --card 'frames=32768')")
     args = parser.parse_args(argv)
-    try:
+
+    def run() -> None:
         if args.command == "list":
             for name in names():
                 c = card(name)
@@ -143,10 +144,8 @@ def main(argv: list[str] | None = None) -> int:
                 except json.JSONDecodeError:
                     changes[key] = value
             print(f"added: {add(args.run, args.name, args.heldout, **changes)}")
-    except (ModelError, OSError) as err:
-        print(f"laserrl-zoo: error: {err}".splitlines()[0], file=sys.stderr)
-        return 2
-    return 0
+
+    return one_line_errors("laserrl-zoo", run)
 
 
 if __name__ == "__main__":
