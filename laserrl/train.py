@@ -214,16 +214,17 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
     and the collector's episodes in flight, ``envs()``) and rewrite its history.json; returns
     the checkpoint path."""
     run.train_seconds = time.perf_counter() - started
+    config = OmegaConf.to_container(cfg, resolve=True)
     path = saver.save({
         "qnet": agent.qnet.state_dict(), "target": agent.target_weights(), "optimizer": agent.optimizer.state_dict(),
         "epsilon": float(agent.egreedy.eps), "frames": run.frames, "updates": run.updates,
         "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
-        "config": OmegaConf.to_container(cfg, resolve=True), **({"best_qnet": best_weights} if best_weights else {}),
+        "config": config, **({"best_qnet": best_weights} if best_weights else {}),
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)
     save_model(Path(cfg.run_dir) / "model", best_weights or agent.qnet.state_dict(),
-               model_metadata(OmegaConf.to_container(cfg, resolve=True), agent.qnet.num_actions, frames=run.frames,
+               model_metadata(config, agent.qnet.num_actions, frames=run.frames,
                               best=run.best, card=model_card(cfg, run)), replace=True)
     save_json(run.history, Path(cfg.run_dir) / "history.json")
     return path
