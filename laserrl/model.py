@@ -199,6 +199,13 @@ def model_dir(spec: str | os.PathLike) -> Path:
     raise ModelError(f"model not found: {path}")
 
 
+def record_dir(directory: str | os.PathLike) -> Path:
+    """Where a model's training record lies (history.json, eval.json): the run directory of a
+    run's ``model/``, or the directory of a zoo or stand-alone model itself."""
+    directory = Path(directory)
+    return directory.parent if directory.name == "model" else directory
+
+
 def _is_torch_file(path: Path) -> bool:
     try:
         with open(path, "rb") as f:

@@ -13,7 +13,7 @@ from typing import Callable
 
 from laserrl.analysis.landscape import interval_width, intervals
 from laserrl.checkpoint import CheckpointError
-from laserrl.model import load_model
+from laserrl.model import load_model, record_dir
 from laserrl.report.context import NOT_IN_ZOO, bank_paths
 
 REQUIRED = ("r_modelocked", "r_planewave", "alpha1_starts", "alpha1_lock_range", "hysteresis", "hysteresis_width",
@@ -239,7 +239,7 @@ def _episodes_finetune(ctx) -> Claim:
         state = load_model(path)
         cfg = state["config"]
         if cfg.get("init_from"):
-            run = Path(state["dir"]).parent if Path(state["dir"]).name == "model" else Path(state["dir"])
+            run = record_dir(state["dir"])
             ev = json.loads((run / "eval.json").read_text()) if (run / "eval.json").exists() else {}
             bank.append((_K_text(cfg["stage"]["K"]), _finetune_episodes(state), ev.get("success_rate")))
     if bank:
@@ -390,6 +390,7 @@ def _hybrid(ctx) -> Claim:
     def cell(n):
         return f"{n}: locked {s[n]['frac_locked']['mean']:.2f}, mean r {s[n]['mean_r']['mean']:.3f}"
     names = [n for n in ("hybrid", "rl", "esc") if n in s]
+    controlled = c.get("controlled") or ["alpha1"]
     better = all(s["hybrid"]["frac_locked"]["mean"] >= s[n]["frac_locked"]["mean"]
                  and s["hybrid"]["mean_r"]["mean"] > s[n]["mean_r"]["mean"] for n in names if n != "hybrid")
     return Claim("hybrid", "Deep RL finds the lock, extremum seeking holds it while K drifts (hybrid, fig. 7)",
@@ -398,9 +399,8 @@ def _hybrid(ctx) -> Claim:
                  f"locked: r >= {c['locked_r']:g})", ["control"],
                  ("The hybrid holds the lock at least as often as either part alone and with a higher mean r."
                   if better else "Here the hybrid does not beat both parts alone on both measures.") +
-                 f" The controllers turn {', '.join(c.get('controlled') or ['alpha1'])}"
-                 + (" (the single-input model; the paper's hybrid turns all four plates)."
-                    if len(c.get("controlled") or ["alpha1"]) == 1 else ".")
+                 f" The controllers turn {', '.join(controlled)}"
+                 + (" (the single-input model; the paper's hybrid turns all four plates)." if len(controlled) == 1 else ".")
                  + " docs/control.md has the comparison with the baselines.")
 
 

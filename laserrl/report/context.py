@@ -17,7 +17,7 @@ from typing import Any, Mapping
 import torch
 
 from laserrl.analysis import (StepSettings, cold_landscape, follow_paths, full_angles, settle, straight_path, sweep)
-from laserrl.model import load_model as read_model
+from laserrl.model import load_model as read_model, record_dir
 from laserrl.config import ConfigError
 from laserrl.envs.factory import make_params, make_task
 from laserrl.envs.laser_env import ANGLE_NAMES
@@ -108,8 +108,7 @@ class Model:
     def run_dir(self) -> Path:
         """Where the model's training record lies (history.json, eval.json): its run directory,
         or the zoo model's own directory."""
-        directory = Path(self.state["dir"])
-        return directory.parent if directory.name == "model" else directory
+        return record_dir(self.state["dir"])
 
     @property
     def K(self) -> float:

@@ -82,7 +82,7 @@ def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_ch
         raise ModelError(f"zoo:{name} exists already; remove {target} first to replace it")
     source = model_dir(run)
     meta = read_meta(source)
-    run_dir = source.parent if source.name == "model" else source
+    run_dir = _model.record_dir(source)
     target.mkdir()
     try:
         for f in (WEIGHTS, META):
