@@ -340,6 +340,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="print the worst one-round-trip error over K, angles and sech / noise starts "
                              "instead of timing")
     parser.add_argument("--sweep-round-trips", type=int, default=30, help="round trips per start of --k-sweep")
+    parser.add_argument("--train-loop", action="store_true",
+                        help="instead of the solver timings: frames per second of the whole training loop "
+                             "(laserrl.bench_train), with the split between simulation and learning, for one "
+                             "process with all threads, one with one thread and --processes at once")
+    parser.add_argument("--train-frames", type=int, default=3072, help="frames of each --train-loop run")
+    parser.add_argument("--train-warmup-frames", type=int, default=1024,
+                        help="frames of each --train-loop run not counted (compilation, random frames)")
+    parser.add_argument("--train-override", action="append", default=[], metavar="KEY=VALUE",
+                        help="a laserrl-train override for the --train-loop runs (repeatable), e.g. stage=siso")
     args = parser.parse_args(argv)
     for b in args.batch_sizes:
         if b < 1:
@@ -350,6 +359,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--process-batch must be positive, got {args.process_batch}")
     if args.compare_repeats < 1 or args.sweep_round_trips < 1:
         parser.error("--compare-repeats and --sweep-round-trips must be positive")
+    if args.train_loop:
+        if args.train_frames <= args.train_warmup_frames or args.train_warmup_frames < 0:
+            parser.error("--train-frames must exceed --train-warmup-frames (>= 0)")
+        from laserrl.bench_train import print_train_loop
+
+        print(f"machine: {machine_line()}")
+        print_train_loop(args.train_frames, args.processes, tuple(args.train_override), args.train_warmup_frames)
+        return 0
     torch.set_num_threads(args.threads or os.cpu_count() or 1)
     params = CavityParams()
     compare = None

@@ -3,6 +3,7 @@ import re
 import statistics
 
 import pytest
+import torch
 
 from laserrl.bench import main
 
@@ -57,3 +58,38 @@ def test_a_failing_benchmark_process_raises_instead_of_hanging():
 def test_bench_refuses_a_non_positive_process_count():
     with pytest.raises(SystemExit):
         main(["--processes", "0"])
+
+
+def test_loop_rates_count_frames_and_learning_time_after_the_warmup():
+    from laserrl.bench_train import loop_rates
+
+    history = [{"frames": 0, "time_s": 0.0, "eval/success_rate": 0.0}]  # rows without learn time are skipped
+    history += [{"frames": 64 * i, "time_s": 2.0 * i, "time/learn_s": 0.5, "train/round_trips_per_step": 10.0 + i}
+                for i in range(1, 6)]
+    rates = loop_rates(history, warmup_frames=128)  # counted from the row at 128 frames (t = 4 s) to 320 (t = 10 s)
+    assert rates["frames"] == 192 and rates["seconds"] == pytest.approx(6.0)
+    assert rates["frames_per_s"] == pytest.approx(32.0)
+    assert rates["learn_share"] == pytest.approx(1.5 / 6.0) and rates["sim_share"] == pytest.approx(0.75)
+    assert rates["round_trips_per_step"] == pytest.approx(14.0)  # rows at 192, 256, 320 frames
+    with pytest.raises(ValueError, match="raise --train-frames"):
+        loop_rates(history, warmup_frames=320)
+
+
+def test_bench_train_loop_times_real_training_runs(capsys):
+    assert main(["--train-loop", "--train-frames", "128", "--train-warmup-frames", "32",
+                 "--train-override", "experiment=smoke", "--train-override", "env.num_envs=8"]) == 0
+    out = capsys.readouterr().out
+    assert "training loop: 128 frames per run (stage=miso, stage.K=0.1, experiment=smoke" in out
+    rows = [line for line in out.splitlines() if line.startswith("| 1 process")]
+    assert len(rows) == 2
+    for row in rows:
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        fps, sim, learn = float(cells[1].replace(",", "")), float(cells[3].rstrip("%")), float(cells[4].rstrip("%"))
+        assert fps > 0 and 0 <= sim <= 100 and 0 <= learn <= 100 and sim + learn == pytest.approx(100, abs=1)
+    assert rows[0].split("|")[3].strip() == "1.00"  # the ratios are against threads=null
+    assert torch.get_num_threads() == 1  # the benchmark gives the process its thread count back (conftest: 1)
+
+
+def test_bench_train_loop_refuses_a_budget_inside_the_warmup():
+    with pytest.raises(SystemExit):
+        main(["--train-loop", "--train-frames", "64", "--train-warmup-frames", "64"])

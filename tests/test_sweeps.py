@@ -99,3 +99,12 @@ def test_submitit_local_launcher(tmp_path):
     assert (tmp_path / "0" / "checkpoints" / "last.pt").exists()
     assert (tmp_path / "0" / "eval.json").exists()
     assert list((tmp_path / ".submitit").glob("*/*_result.pkl"))
+
+
+def test_joblib_launcher_runs_seeds_side_by_side(tmp_path):
+    # several seeds at once on one machine, one torch thread each (docs/benchmarks.md, the training loop)
+    _multirun(tmp_path, "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "threads=1", "seed=0,1")
+    for i in range(2):
+        summary = json.loads((tmp_path / str(i) / "summary.json").read_text())
+        assert summary["frames"] == 64 and (tmp_path / str(i) / "model" / "model.safetensors").exists()
+        assert f"seed: {i}" in (tmp_path / str(i) / ".hydra" / "overrides.yaml").read_text().replace("=", ": ")

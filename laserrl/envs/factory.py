@@ -14,7 +14,7 @@ from laserrl.envs.transforms import centred_reward
 from laserrl.physics import CavityParams
 
 TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "init_fields", "sech_amplitude", "sech_width",
-             "noise_scale", "max_steps")
+             "noise_scale", "max_steps", "move_cost")
 ENV_TASK_KEYS = ("max_round_trips", "min_round_trips", "tol", "dtype", "compile")  # LaserTask fields set from the env group
 
 

@@ -22,7 +22,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from laserrl.envs.actions import num_actions
+from laserrl.envs.actions import hold_action, num_actions
 from laserrl.envs.step import CavityState, StepNumerics, observe, step, wrap_angle
 from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
@@ -86,6 +86,9 @@ class LaserTask:
     # the paper's 1e-6 with complex128, 1e-5 with complex64 (see CONVERGENCE_FLOOR)
     tol: float | None = None
     max_steps: int = 40  # episode length (paper: 40 in training, 20 at inference)
+    # subtracted from the reward r of a step that turns a plate (0: the paper's reward); r itself,
+    # which evaluation reads, is unchanged
+    move_cost: float = 0.0
     dtype: str = "complex64"
     compile: bool = False
 
@@ -127,6 +130,8 @@ class LaserTask:
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value) \
                     or int(value) != value or value < 1:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not finite_number(self.move_cost, "move_cost") >= 0:
+            raise ValueError(f"move_cost must be >= 0, got {self.move_cost!r}")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         if self.tol is None:
@@ -184,6 +189,7 @@ class LaserCavityEnv(EnvBase):
         dev = self.device
         t = self.task
         self._ctrl_idx = torch.tensor(t.controlled_index, device=dev)
+        self._hold = hold_action(len(t.controlled))
         self._steps = torch.tensor([math.radians(s) for s in t.steps_deg], dtype=torch.float64, device=dev)
         lo_hi = torch.tensor([t.init_angles_deg[k] for k in ANGLE_NAMES], dtype=torch.float64, device=dev)
         self._angle_lo, self._angle_hi = torch.deg2rad(lo_hi[:, 0]), torch.deg2rad(lo_hi[:, 1])
@@ -271,7 +277,10 @@ class LaserCavityEnv(EnvBase):
         action = tensordict.get("action").reshape(self.batch_size)
         self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
         out = self._observation(measured.r, measured.round_trips)
-        out.set("reward", measured.r.to(torch.float32).unsqueeze(-1))
+        reward = measured.r
+        if self.task.move_cost:
+            reward = reward - self.task.move_cost * (action != self._hold).to(reward.dtype)
+        out.set("reward", reward.to(torch.float32).unsqueeze(-1))
         truncated = (self.state.step_count >= self.task.max_steps).unsqueeze(-1)
         out.set("truncated", truncated)
         out.set("terminated", torch.zeros_like(truncated))

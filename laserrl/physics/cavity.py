@@ -84,7 +84,10 @@ def _propagate(u, v, K: torch.Tensor, params: CavityParams, compile: bool, refin
             break
         idx = bad.nonzero().flatten()
         finer = params.refined(4**level)
-        u_b, v_b, err_b = _propagate_fixed(u[idx], v[idx], K[idx], finer, False)
+        # the split-step graphs take the step counts as an argument, so the compiled ones serve
+        # the refinement too (eager, its 4x steps cost seconds a round trip at the four-controller
+        # start); DOP853 would compile a new graph per step count, so it refines eagerly
+        u_b, v_b, err_b = _propagate_fixed(u[idx], v[idx], K[idx], finer, compile and params.integrator == "split")
         u_out, v_out, error = u_out.clone(), v_out.clone(), error.clone()
         u_out[idx], v_out[idx], error[idx] = u_b, v_b, err_b
     return u_out, v_out

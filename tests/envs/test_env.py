@@ -229,6 +229,24 @@ def test_reward_is_r_of_the_new_state():
     assert (out["round_trips"] >= 1).all() and (out["round_trips"] <= 3).all()
 
 
+def test_move_cost_is_taken_from_the_reward_of_steps_that_turn_a_plate_and_r_is_unchanged():
+    kw = dict(batch_size=3, seed=5, controlled=ANGLE_NAMES, steps_deg=(0.5,) * 4, **FAST)
+    hold = hold_action(4)
+    actions = [hold, 0, hold + 1]  # hold; all four plates down; alpha1 alone up
+    plain = LaserCavityEnv(**kw)
+    costly = LaserCavityEnv(move_cost=0.02, **kw)
+    a = step(plain, plain.reset(), actions)["next"]
+    b = step(costly, costly.reset(), actions)["next"]
+    torch.testing.assert_close(b["r"], a["r"])  # the same cavities: the cost is not physics
+    torch.testing.assert_close(b["reward"], a["r"] - torch.tensor([[0.0], [0.02], [0.02]]))
+
+
+@pytest.mark.parametrize("cost", [-0.1, math.inf, "0.1", True])
+def test_bad_move_cost_is_named(cost):
+    with pytest.raises(ValueError, match="move_cost"):
+        LaserCavityEnv(batch_size=1, move_cost=cost)
+
+
 def test_nan_field_names_the_cavity():
     env = LaserCavityEnv(batch_size=3, seed=0, **FAST)
     td = env.reset()
