@@ -53,8 +53,9 @@ def _eval_app(cfg: DictConfig) -> float:
             bank = OmegaConf.to_container(cfg.bank, resolve=True) if OmegaConf.is_list(cfg.bank) else cfg.bank
             if not isinstance(bank, list):
                 raise ConfigError(f"bank: give a list of checkpoints, e.g. bank=[K0.pt,[K0.2_seed0.pt,K0.2_seed1.pt]], got {bank!r}")
-            result = evaluate_bank(bank, eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None)
-            return float(result["grid_success"]["max_q"])
+            trial = OmegaConf.to_container(cfg.bank_trial, resolve=True) if cfg.get("bank_trial") else None
+            result = evaluate_bank(bank, eval_cfg, cfg.run_dir, stage, single=cfg.checkpoint or None, trial=trial)
+            return float(max(result["grid_success"][rule] for rule in ("max_q", "trial")))  # the best K-blind rule
         if cfg.checkpoint is None or cfg.checkpoint == "":
             raise ConfigError("give the checkpoint to evaluate: laserrl-eval checkpoint=PATH (or bank=[PATH,...])")
         result = evaluate_checkpoint(cfg.checkpoint, eval_cfg, cfg.run_dir, stage)

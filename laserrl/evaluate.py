@@ -15,6 +15,7 @@ directory and prints its path.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -267,18 +268,24 @@ def _member_qnet(states: list[dict], action_spec):
 
 
 def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, stage: Mapping | None = None,
-                  single: str | None = None) -> dict:
+                  single: str | None = None, trial: Mapping[str, Any] | None = None) -> dict:
     """Generalisation across K of a bank of models (and optionally one model), the paper's fig. 6.
 
     ``bank``: one entry per member, a checkpoint path or a list of paths trained at the same K
     (an ensemble whose Q-values are averaged, ``laserrl.agents.bank.MeanQ``).
     Rules: ``nearest`` acts at each K with the model trained at the nearest K (an oracle
     that knows K; a model fine-tuned over a K range serves the K inside it, see
-    ``nearest_model``); ``max_q`` acts with ``MaxQBank`` (no knowledge of K); ``single`` is the
-    one model ``single`` at every K. Writes eval.json with the success rate per K of each
-    rule and ``generalisation.png``.
+    ``nearest_model``); ``max_q`` acts with ``MaxQBank`` and ``trial`` with ``TrialBank``
+    (``trial``: the ``TrialRule``'s settings), neither told K; ``single`` is the one model
+    ``single`` at every K. Writes eval.json with the success rate per K of each rule and
+    ``generalisation.png``.
     """
-    from laserrl.agents.bank import make_bank_actor
+    from laserrl.agents.bank import TrialRule, make_bank_actor, make_trial_actor
+
+    try:
+        rule = TrialRule(**dict(trial or {}))
+    except TypeError as err:
+        raise ConfigError(f"bank_trial: {err}; its keys are steps, min_rise, lock_r") from None
 
     members = [_load_member(entry, i) for i, entry in enumerate(bank)]
     model_K = [_stage_K(m[0]) for m in members]
@@ -291,6 +298,10 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     rules: dict[str, dict] = {}
     rules["max_q"] = _summary(evaluate_policy(
         lambda env: make_bank_actor([_member_qnet(m, env.action_spec_unbatched) for m in members], env.action_spec_unbatched),
+        cfg["env"], stage_cfg, eval_cfg, seed))
+    rules["trial"] = _summary(evaluate_policy(
+        lambda env: make_trial_actor([_member_qnet(m, env.action_spec_unbatched) for m in members],
+                                     env.action_spec_unbatched, rule),
         cfg["env"], stage_cfg, eval_cfg, seed))
     nearest_by_K: dict[str, dict] = {}
     for m, member in enumerate(members):
@@ -308,8 +319,9 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
         state = load_model(single)
         rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
-    result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members], "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
-              "stage": stage_cfg.get("name"), "rules": rules,
+    result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members],
+              "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
+              "stage": stage_cfg.get("name"), "trial_rule": dataclasses.asdict(rule), "rules": rules,
               # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
               "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)
                                for name, rule in rules.items()}}

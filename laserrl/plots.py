@@ -45,13 +45,14 @@ def plot_eval(result: dict, path: str | Path) -> Path:
     return Path(path)
 
 
-RULE_LABELS = {"single": "one model", "nearest": "bank, nearest K (knows K)", "max_q": "bank, highest Q (K unknown)"}
+RULE_LABELS = {"single": "one model", "nearest": "bank, nearest K (knows K)", "max_q": "bank, highest Q (K unknown)",
+               "trial": "bank, trial (K unknown)"}
 
 
 def plot_generalisation(result: dict, path: str | Path) -> Path:
     """Success rate against K for each rule of a bank evaluation (paper fig. 6)."""
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
-    for name in ("single", "nearest", "max_q"):
+    for name in ("single", "nearest", "max_q", "trial"):
         rule = result["rules"].get(name)
         if rule is None:
             continue

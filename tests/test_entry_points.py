@@ -198,7 +198,8 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads((ev / "eval.json").read_text())
     assert result["bank_K"] == [0.1, 0.0] and result["bank"][1] == [str(tuned), str(tuned)]
-    assert set(result["rules"]) == {"single", "nearest", "max_q"}
+    assert set(result["rules"]) == {"single", "nearest", "max_q", "trial"}
+    assert result["trial_rule"] == {"steps": 5, "min_rise": 0.002, "lock_r": 0.15}  # conf/eval.yaml's bank_trial
     for rule in result["rules"].values():
         assert list(rule["by_K"]) == ["0", "0.1", "0.3"]
     # nearest K: the fine-tuned model (index 1) at K = 0, the base elsewhere

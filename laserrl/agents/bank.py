@@ -3,8 +3,11 @@
 K is not observed, so a bank cannot simply pick the model trained nearest the true K.
 ``MaxQBank`` picks, for every cavity at every step, the model whose greedy Q-value is
 highest (each model's estimate of the return it can still collect) and acts with that
-model's greedy action. The oracle rule that knows K (nearest training K) is an
-evaluation-side grouping, see ``laserrl.evaluate.evaluate_bank``.
+model's greedy action. ``TrialBank`` tries the models in turn on the running laser instead:
+it keeps a model while the measured reward r rises or holds the lock, and moves on to the
+next one when r has not risen over a trial of a few steps. Neither is told K. The oracle
+rule that knows K (nearest training K) is an evaluation-side grouping, see
+``laserrl.evaluate.evaluate_bank``.
 
 A bank member can itself be an ensemble, ``MeanQ``: several Q-networks trained for the same
 task (for example the seeds of one fine-tuning recipe) whose Q-values are averaged. Where the
@@ -14,6 +17,8 @@ reliably than any one of them.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
@@ -22,7 +27,7 @@ from torchrl.modules import QValueModule
 from laserrl.agents.qnet import FieldQNet
 from laserrl.agents.dqn import OBS_KEYS
 
-__all__ = ["MaxQBank", "MeanQ", "make_bank_actor"]
+__all__ = ["MaxQBank", "MeanQ", "TrialBank", "TrialRule", "make_bank_actor", "make_trial_actor"]
 
 
 def _common_action_count(qnets: list[nn.Module], group: str, of_group: str) -> int:
@@ -66,4 +71,68 @@ class MaxQBank(nn.Module):
 def make_bank_actor(qnets: list[FieldQNet | MeanQ], action_spec) -> TensorDictSequential:
     """Greedy policy of a ``MaxQBank``: writes ``action``, ``action_value`` and ``model``."""
     bank = TensorDictModule(MaxQBank(qnets), in_keys=OBS_KEYS, out_keys=["action_value", "model"])
+    return TensorDictSequential(bank, QValueModule(spec=action_spec))
+
+
+@dataclass(frozen=True)
+class TrialRule:
+    """How ``TrialBank`` tries its models: each model gets ``steps`` agent steps at a time; it
+    stays while r rises by at least ``min_rise`` over such a trial, or while r >= ``lock_r``
+    (locked: nothing to search for); otherwise the next model (cyclically) takes over."""
+
+    steps: int = 5
+    min_rise: float = 0.002
+    lock_r: float = 0.15
+
+    def __post_init__(self):
+        from laserrl.validate import check_number
+
+        check_number(self.steps, "bank_trial.steps", low=1, integer=True)
+        check_number(self.min_rise, "bank_trial.min_rise", low=0)
+        check_number(self.lock_r, "bank_trial.lock_r")
+
+
+class TrialBank(nn.Module):
+    """Per cavity, the Q-values of the model on trial (see ``TrialRule``); and that model's index.
+
+    Reads what an experiment measures, the reward r of the current state, and the step count
+    of the episode (0: a new episode, which starts with model 0). Its per-cavity state (the
+    model on trial, the steps it has had, r when its trial began) lives in the module, so
+    one ``TrialBank`` serves one batch of cavities stepping together."""
+
+    def __init__(self, qnets: list[FieldQNet | MeanQ], rule: TrialRule = TrialRule()):
+        super().__init__()
+        _common_action_count(qnets, "a model bank", "a bank")
+        self.qnets = nn.ModuleList(qnets)
+        self.rule = rule
+        self.current = self.steps_on = self.r_start = None
+
+    def _choose(self, r: torch.Tensor, step_count: torch.Tensor) -> torch.Tensor:
+        rule, new = self.rule, step_count == 0
+        if self.current is None or self.current.shape != r.shape:
+            self.current, self.steps_on, self.r_start = torch.zeros_like(step_count), torch.zeros_like(step_count), r.clone()
+        self.current = torch.where(new, 0, self.current)
+        self.steps_on = torch.where(new, 0, self.steps_on)
+        self.r_start = torch.where(new, r, self.r_start)
+        locked = r >= rule.lock_r
+        trial_over = self.steps_on >= rule.steps
+        rose = r >= self.r_start + rule.min_rise
+        switch = trial_over & ~rose & ~locked
+        self.current = torch.where(switch, (self.current + 1) % len(self.qnets), self.current)
+        restart = trial_over | locked  # a new trial (of the same model if r rose or it is locked)
+        self.steps_on = torch.where(restart, 0, self.steps_on) + 1
+        self.r_start = torch.where(restart, r, self.r_start)
+        return self.current
+
+    def forward(self, fields: torch.Tensor, angles: torch.Tensor, r: torch.Tensor, step_count: torch.Tensor):
+        model = self._choose(r.reshape(r.shape[:-1]).to(torch.float64), step_count.reshape(step_count.shape[:-1]))
+        q = torch.stack([net(fields, angles) for net in self.qnets])  # (M, *batch, A)
+        chosen = torch.gather(q, 0, model[None, ..., None].expand(1, *q.shape[1:]))[0]
+        return chosen, model
+
+
+def make_trial_actor(qnets: list[FieldQNet | MeanQ], action_spec, rule: TrialRule = TrialRule()) -> TensorDictSequential:
+    """Greedy policy of a ``TrialBank``: writes ``action``, ``action_value`` and ``model``."""
+    bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*OBS_KEYS, "r", "step_count"],
+                            out_keys=["action_value", "model"])
     return TensorDictSequential(bank, QValueModule(spec=action_spec))

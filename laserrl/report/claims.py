@@ -288,7 +288,8 @@ def _K_bank(ctx) -> Claim:
     g = ctx.generalisation
     ctx.commands.setdefault("generalisation", _generalisation_command(ctx))
     parts = []
-    for name, label in (("nearest", "nearest-K rule (knows K)"), ("max_q", "highest-Q rule (K unknown)")):
+    for name, label in (("nearest", "nearest-K rule (knows K)"), ("max_q", "highest-Q rule (K unknown)"),
+                        ("trial", "trial rule (K unknown)")):
         if name in g["rules"]:
             Ks, ok = _rule(ctx, name)
             parts.append(f"{label}: K in {_Ks(Ks, ok)} ({sum(ok)} / {len(ok)})")

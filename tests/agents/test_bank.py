@@ -63,3 +63,62 @@ def test_an_ensemble_needs_models_with_the_same_actions():
         MeanQ([_qnet(0, 3), _qnet(1, 9)])
     with pytest.raises(ValueError, match="at least one"):
         MeanQ([])
+
+
+class _Constant(torch.nn.Module):
+    """A Q-network stand-in whose greedy action is ``action`` everywhere."""
+
+    def __init__(self, action, actions=3):
+        super().__init__()
+        self.num_actions, self.action = actions, action
+
+    def forward(self, fields, angles):
+        q = torch.zeros(*fields.shape[:-2], self.num_actions)
+        q[..., self.action] = 1.0
+        return q
+
+
+def _trial_models(bank, r_path, step_counts=None):
+    """The model index the trial bank picks at each step for one cavity whose measured r runs ``r_path``."""
+    out = []
+    for t, r in enumerate(r_path):
+        steps = t if step_counts is None else step_counts[t]
+        _, model = bank(torch.zeros(1, 4, 8), torch.zeros(1, 4), torch.tensor([[r]]), torch.tensor([[steps]]))
+        out.append(int(model[0]))
+    return out
+
+
+def test_trial_bank_moves_on_when_r_does_not_rise_and_keeps_a_model_whose_r_rises():
+    from laserrl.agents.bank import TrialBank, TrialRule
+
+    rule = TrialRule(steps=3, min_rise=0.01, lock_r=0.15)
+    flat = [0.05] * 8  # r never rises: each model gets 3 steps, then the next (cyclically)
+    assert _trial_models(TrialBank([_Constant(0), _Constant(1), _Constant(2)], rule), flat) == [0, 0, 0, 1, 1, 1, 2, 2]
+    rising = [0.05 + 0.01 * t for t in range(8)]  # r rises by 0.03 over every trial: model 0 stays
+    assert _trial_models(TrialBank([_Constant(0), _Constant(1)], rule), rising) == [0] * 8
+    # locked (r >= lock_r) with model 1: it stays although r no longer rises, and a new episode starts at model 0
+    locked = [0.05, 0.05, 0.05, 0.05, 0.16, 0.16, 0.16, 0.16, 0.16, 0.05]
+    steps = list(range(9)) + [0]
+    assert _trial_models(TrialBank([_Constant(0), _Constant(1)], rule), locked, steps) == [0, 0, 0, 1, 1, 1, 1, 1, 1, 0]
+
+
+def test_trial_actor_acts_with_the_model_on_trial_per_cavity():
+    from laserrl.agents.bank import TrialRule, make_trial_actor
+
+    actor = make_trial_actor([_Constant(0), _Constant(2)], Categorical(3), TrialRule(steps=1, min_rise=0.01))
+    td = TensorDict(fields=torch.zeros(2, 4, 8), angles=torch.zeros(2, 4), r=torch.tensor([[0.05], [0.05]]),
+                    step_count=torch.tensor([[0], [0]]), batch_size=[2])
+    with torch.no_grad():
+        assert actor(td.clone())["action"].tolist() == [0, 0]
+        td["step_count"] += 1
+        td["r"] = torch.tensor([[0.05], [0.07]])  # cavity 1's r rose over its one-step trial, cavity 0's did not
+        out = actor(td.clone())
+    assert out["model"].tolist() == [1, 0] and out["action"].tolist() == [2, 0]
+
+
+@pytest.mark.parametrize("key, value", [("steps", 0), ("min_rise", -0.1), ("lock_r", float("nan"))])
+def test_trial_rule_names_a_bad_setting(key, value):
+    from laserrl.agents.bank import TrialRule
+
+    with pytest.raises(ValueError, match=f"bank_trial.{key}"):
+        TrialRule(**{key: value})
