@@ -61,16 +61,30 @@ def run_transfer(cfg: DictConfig) -> dict:
     """Fine-tune ``transfer.base`` to every K in ``transfer.Ks`` and train from scratch at
     the same K, both stopping once the greedy success rate reaches
     ``train.stop_at_success``; writes ``transfer.json`` and ``transfer.md`` (frames to
-    success of each, and their ratio). Returns the mean fine-tune / scratch frame ratio."""
+    success of each, and their ratio). Returns the mean fine-tune / scratch frame ratio.
+
+    ``transfer.scratch_from``: the scratch run goes through a curriculum whose earlier stages
+    do not depend on K (e.g. the two-controller stage at K = 0.1 before the four-controller
+    one): it starts from that stage's model, and the frames of that model and of those it was
+    warm-started from (``laserrl.model.frames_since_scratch``) count towards its frames."""
     t = cfg.transfer
     if not t.base:
         raise ConfigError("transfer.base: give the model to fine-tune, e.g. transfer.base=zoo:siso or a run directory")
-    from laserrl.model import load_model
+    from laserrl.model import frames_since_scratch, load_model
 
     try:
         load_model(t.base)
     except CheckpointError as err:
         raise ConfigError(f"transfer.base: {err}") from None
+    scratch_from, prior_frames = t.get("scratch_from"), 0
+    if scratch_from:
+        try:
+            prior_frames = frames_since_scratch(load_model(scratch_from))
+        except CheckpointError as err:
+            raise ConfigError(f"transfer.scratch_from: {err}") from None
+        if prior_frames is None:
+            raise ConfigError(f"transfer.scratch_from: {scratch_from} does not record the frames of the models it was "
+                              "warm-started from (its card's frames_since_scratch)")
     if cfg.train.get("stop_at_success") is None or not cfg.train.get("eval_every_frames"):
         raise ConfigError("transfer needs train.eval_every_frames and train.stop_at_success to count frames to success")
     by_K = _settings_by_K(t.get("by_K"))
@@ -79,8 +93,10 @@ def run_transfer(cfg: DictConfig) -> dict:
         row = {"K": K}
         # per-K settings (e.g. longer episodes where the locks lie far from the starts) apply to both runs
         at_K = next((s for k, s in by_K.items() if math.isclose(k, K, abs_tol=1e-9)), None)
-        runs = [("finetune", t.base, t.finetune)] + ([("scratch", None, t.scratch)] if t.scratch is not None else [])
-        for label, init, overrides in runs:
+        runs = [("finetune", t.base, t.finetune, 0)]
+        if t.scratch is not None:
+            runs.append(("scratch", scratch_from or None, t.scratch, prior_frames))
+        for label, init, overrides, before in runs:
             run_dir = Path(cfg.run_dir) / f"K{K:+.2f}-{label}"
             done = run_dir / "summary.json"
             if done.exists():  # finished earlier (an interrupted or parallel transfer run): reuse it
@@ -93,7 +109,9 @@ def run_transfer(cfg: DictConfig) -> dict:
                         sub = OmegaConf.merge(sub, extra)
                 print(f"transfer: K = {K:g}, {label}")
                 summary = train(sub)
-            row[label] = {"frames_to_success": summary["frames_to_success"], "frames": summary["frames"],
+            reached = summary["frames_to_success"]
+            row[label] = {"frames_to_success": None if reached is None else before + reached,
+                          "frames": before + summary["frames"], "frames_before": before,
                           "train_seconds": summary["train_seconds"],
                           "success_rate": summary.get("eval/success_rate")}
         if t.scratch is not None:
@@ -104,7 +122,8 @@ def run_transfer(cfg: DictConfig) -> dict:
             row["ratio"] = f_eff / s_eff if s_eff else math.nan
             row["ratio_is_bound"] = f is None or s is None
         rows.append(row)
-    out = {"base": str(t.base), "stop_at_success": cfg.train.stop_at_success, "rows": rows}
+    out = {"base": str(t.base), "scratch_from": scratch_from or None, "scratch_frames_before": prior_frames,
+           "stop_at_success": cfg.train.stop_at_success, "rows": rows}
     Path(cfg.run_dir).mkdir(parents=True, exist_ok=True)
     (Path(cfg.run_dir) / "transfer.json").write_text(json.dumps(out, indent=1))
     (Path(cfg.run_dir) / "transfer.md").write_text(transfer_table(out))
@@ -140,4 +159,7 @@ def transfer_table(out: dict) -> str:
         ratio = r.get("ratio")
         ratio_s = "-" if ratio is None else (f"{ratio:.2f}" + (" (bound)" if r.get("ratio_is_bound") else ""))
         lines.append(f"| {r['K']:g} | {fmt(r.get('finetune'))} | {fmt(r.get('scratch'))} | {ratio_s} |")
+    if out.get("scratch_from"):
+        lines.append(f"\nScratch frames include the {out['scratch_frames_before']:,} frames of the curriculum's "
+                     f"earlier stages ({out['scratch_from']} and the models it was warm-started from).")
     return "\n".join(lines) + "\n"

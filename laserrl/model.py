@@ -272,6 +272,18 @@ def load_model(spec: str | os.PathLike) -> dict:
             "frames": frames, "path": shown, "dir": str(directory), "meta": meta}
 
 
+def frames_since_scratch(state: Mapping) -> int | None:
+    """Frames of a loaded model (``load_model``) together with those of the models it was
+    warm-started from, back to the run that started from scratch (its card's
+    ``frames_since_scratch``, written at training time); None where that is not known."""
+    card = (state.get("meta") or {}).get("card") or {}
+    if card.get("frames_since_scratch") is not None:
+        return int(card["frames_since_scratch"])
+    if not state["config"].get("init_from") and state.get("frames") is not None:
+        return int(state["frames"])
+    return None
+
+
 def export_checkpoint(checkpoint: str | os.PathLike, out: str | os.PathLike | None = None) -> Path:
     """Write the model of a training checkpoint (``RUN/checkpoints/last.pt`` or ``best.pt``)
     into ``out`` (default: ``RUN/model``); refuses to overwrite. The checkpoint is read with

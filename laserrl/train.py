@@ -14,6 +14,7 @@ evaluates the final checkpoint. The Hydra entry point is ``laserrl.cli``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import random
 import shlex
@@ -244,10 +245,25 @@ def model_card(cfg: DictConfig, run: RunCounters) -> dict:
         command = " ".join(["laserrl-train", *(shlex.quote(o) for o in overrides)])
     except ValueError:  # not run by the Hydra app
         command = None
+    before = warm_start_frames(cfg.init_from) if cfg.init_from else 0
     return {"command": command, "commit": git_commit(), "laserrl_version": package_version(), "machine": machine_line(),
             "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d"), "seed": int(cfg.seed),
             "frames": run.frames, "episodes": run.frames // int(cfg.stage.max_steps), "train_seconds": round(run.train_seconds, 1),
-            "resumed_at_frames": list(run.resumed_at_frames)}
+            "resumed_at_frames": list(run.resumed_at_frames),
+            # with the frames of the models it was warm-started from (a curriculum's earlier stages)
+            "frames_since_scratch": None if before is None else before + run.frames}
+
+
+@functools.lru_cache(maxsize=8)
+def warm_start_frames(init_from: str) -> int | None:
+    """``laserrl.model.frames_since_scratch`` of the model a run was warm-started from (None if unknown)."""
+    from laserrl.checkpoint import CheckpointError
+    from laserrl.model import frames_since_scratch, load_model
+
+    try:
+        return frames_since_scratch(load_model(init_from))
+    except CheckpointError:
+        return None
 
 
 def store(replay, n_step, data) -> None:

@@ -212,6 +212,44 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     assert not (tmp_path / "bad_bank" / "eval.json").exists()
 
 
+def test_transfer_scratch_through_a_curriculum_counts_the_earlier_stages_frames(trained, tmp_path):
+    """transfer.scratch_from: the scratch run starts from the curriculum's stage before, whose
+    frames (and those of the models it grew from) count towards the scratch run's."""
+    base, _ = trained
+    base_frames = json.loads((base / "summary.json").read_text())["frames"]
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
+              f"transfer.scratch_from={base}", "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=32",
+              "transfer.scratch.train.total_frames=32", "train.eval_every_frames=32", "train.stop_at_success=1.0",
+              "eval.steps=2", "eval.starts_deg=[-30]", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = json.loads((tmp_path / "transfer.json").read_text())
+    (row,) = out["rows"]
+    assert out["scratch_frames_before"] == base_frames and row["scratch"]["frames_before"] == base_frames
+    scratch_summary = json.loads((tmp_path / "K+0.00-scratch" / "summary.json").read_text())
+    assert row["scratch"]["frames"] == base_frames + scratch_summary["frames"]
+    if row["scratch"]["frames_to_success"] is not None:
+        assert row["scratch"]["frames_to_success"] == base_frames + scratch_summary["frames_to_success"]
+    assert row["finetune"]["frames_before"] == 0
+    from laserrl.model import load_model
+
+    scratch = load_model(tmp_path / "K+0.00-scratch")
+    assert scratch["config"]["init_from"] == str(base)
+    assert scratch["meta"]["card"]["frames_since_scratch"] == base_frames + scratch_summary["frames"]
+    assert "earlier stages" in (tmp_path / "transfer.md").read_text()
+    # a model that does not record the frames of the models it grew from is refused before any training
+    import shutil
+
+    unknown = tmp_path / "unknown"
+    shutil.copytree(tmp_path / "K+0.00-scratch" / "model", unknown)
+    meta = json.loads((unknown / "model.json").read_text())
+    del meta["card"]["frames_since_scratch"]
+    (unknown / "model.json").write_text(json.dumps(meta))
+    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
+              f"transfer.scratch_from={unknown}", f"hydra.run.dir={tmp_path / 'refused'}", cwd=tmp_path)
+    _one_line_error(res, "transfer.scratch_from")
+    assert not (tmp_path / "refused" / "transfer.json").exists()
+
+
 def test_transfer_rejects_a_non_numeric_K_setting(trained, tmp_path):
     base, _ = trained
     res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",

@@ -50,7 +50,9 @@ def describe(name: str) -> str:
              f"  commit:      {k.get('commit') or 'not recorded'} (laserrl {k.get('laserrl_version')})",
              f"  machine:     {k.get('machine') or 'not recorded'}, {k.get('date') or ''}",
              f"  training:    {k.get('frames')} frames ({k.get('episodes')} episodes), "
-             f"{(k.get('train_seconds') or 0) / 60:.1f} min",
+             f"{(k.get('train_seconds') or 0) / 60:.1f} min"
+             + (f"; {k['frames_since_scratch']} frames since scratch (with the models it was warm-started from)"
+                if k.get("frames_since_scratch") not in (None, k.get("frames")) else ""),
              f"  evaluation:  {_eval_line(c['eval'])}"]
     if c.get("heldout"):
         lines.append(f"  held out:    {_eval_line(c['heldout'])}")
