@@ -47,6 +47,7 @@ from laserrl.paths import REFERENCE_DATA
 from laserrl.physics import CavityParams, noise_fields, round_trip, sech_fields
 from laserrl.physics import reference as ref
 from laserrl.physics.cavity import fft_pairs_per_round_trip
+from laserrl.spawned import spawn_on_barrier
 
 PAPER_ANGLES_DEG = (-24.0, 3.0, 28.0, 88.0)
 
@@ -269,7 +270,7 @@ def _process_worker(kind: str, batch: int, params: CavityParams, device: str, co
                     barrier, results) -> None:
     """One benchmark process (spawned): set up, wait for the others, then step for ``seconds``.
 
-    Puts (cavity round trips, elapsed seconds) on ``results``, or ("error", message)."""
+    Puts ("ok", (cavity round trips, elapsed seconds)) on ``results``, or ("error", message)."""
     try:
         torch.set_num_threads(1)  # N processes on N cores: one thread each does not oversubscribe
         if kind == "torch":
@@ -280,7 +281,7 @@ def _process_worker(kind: str, batch: int, params: CavityParams, device: str, co
             step, batch = scipy_stepper(params), 1
         barrier.wait(timeout=900)
         calls, elapsed = run_for(step, seconds, 1)
-        results.put((calls * batch, elapsed))
+        results.put(("ok", (calls * batch, elapsed)))
     except BaseException as err:  # noqa: BLE001 - reported by the parent, which raises
         barrier.abort()
         results.put(("error", f"{type(err).__name__}: {err}"))
@@ -293,20 +294,8 @@ def time_processes(kind: str, processes: int, batch: int, params: CavityParams, 
     ``kind`` is "torch" (a batch of ``batch`` cavities each, one thread) or "scipy" (the
     reference, one cavity each). Workers are spawned (no fork of a process that holds
     torch threads) and start timing together on a barrier."""
-    import multiprocessing as mp
-
-    ctx = mp.get_context("spawn")
-    barrier, results = ctx.Barrier(processes), ctx.Queue()
-    workers = [ctx.Process(target=_process_worker, args=(kind, batch, params, device, compile, seconds, barrier, results))
-               for _ in range(processes)]
-    for w in workers:
-        w.start()
-    outcomes = [results.get(timeout=1800) for _ in workers]
-    for w in workers:
-        w.join()
-    errors = [o[1] for o in outcomes if o[0] == "error"]
-    if errors:
-        raise RuntimeError(f"a {kind} benchmark process failed: {errors[0]}")
+    outcomes = spawn_on_barrier(_process_worker, [(kind, batch, params, device, compile, seconds)] * processes,
+                                1800, f"{kind} benchmark")
     return sum(count / elapsed for count, elapsed in outcomes)
 
 

@@ -74,29 +74,18 @@ def _worker(frames, seed, overrides, warmup_frames, barrier, results) -> None:
 
         torch.set_num_threads(1)
         barrier.wait(timeout=900)
-        results.put(train_once(frames, 1, seed, overrides, warmup_frames))
+        results.put(("ok", train_once(frames, 1, seed, overrides, warmup_frames)))
     except BaseException as err:  # noqa: BLE001 - reported by the parent, which raises
         barrier.abort()
-        results.put({"error": f"{type(err).__name__}: {err}"})
+        results.put(("error", f"{type(err).__name__}: {err}"))
 
 
 def train_in_processes(processes: int, frames: int, overrides: tuple[str, ...], warmup_frames: int) -> list[dict]:
     """``processes`` one-thread training runs at once (seeds 0, 1, ...), spawned and started on a barrier."""
-    import multiprocessing as mp
+    from laserrl.spawned import spawn_on_barrier
 
-    ctx = mp.get_context("spawn")
-    barrier, results = ctx.Barrier(processes), ctx.Queue()
-    workers = [ctx.Process(target=_worker, args=(frames, seed, overrides, warmup_frames, barrier, results))
-               for seed in range(processes)]
-    for w in workers:
-        w.start()
-    outcomes = [results.get(timeout=3600) for _ in workers]
-    for w in workers:
-        w.join()
-    errors = [o["error"] for o in outcomes if "error" in o]
-    if errors:
-        raise RuntimeError(f"a training benchmark process failed: {errors[0]}")
-    return outcomes
+    return spawn_on_barrier(_worker, [(frames, seed, overrides, warmup_frames) for seed in range(processes)], 3600,
+                            "training benchmark")
 
 
 def print_train_loop(frames: int, processes: int, overrides: tuple[str, ...], warmup_frames: int) -> dict:
