@@ -127,7 +127,8 @@ def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
                           exploration=dict(cfg.agent.exploration), gamma=cfg.agent.gamma,
                           loss_function=cfg.agent.loss_function, target=dict(cfg.agent.target), lr=cfg.optim.lr,
                           weight_decay=cfg.optim.weight_decay, lr_decay=decay, lr_decay_updates=decay_updates,
-                          max_grad_norm=cfg.optim.max_grad_norm, prioritized=cfg.replay.kind == "prioritized")
+                          max_grad_norm=cfg.optim.max_grad_norm, prioritized=cfg.replay.kind == "prioritized",
+                          average_decay=cfg.agent.get("average_decay"))
 
 
 def seed_everything(cfg: DictConfig) -> None:
@@ -198,7 +199,7 @@ def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success:
     if run.best is None or (success, final_r) > (run.best["success_rate"], run.best["mean_final_reward"]):
         run.best = {"frames": run.frames, "success_rate": success, "mean_final_reward": final_r}
         best_weights.clear()
-        best_weights.update({k: v.detach().clone() for k, v in agent.qnet.state_dict().items()})
+        best_weights.update({k: v.detach().clone() for k, v in agent.model_weights().items()})
 
 
 def env_snapshot(collector) -> dict | None:
@@ -224,7 +225,7 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)
-    save_model(Path(cfg.run_dir) / "model", best_weights or agent.qnet.state_dict(),
+    save_model(Path(cfg.run_dir) / "model", best_weights or agent.model_weights(),
                model_metadata(config, agent.qnet.num_actions, frames=run.frames,
                               best=run.best, card=model_card(cfg, run)), replace=True)
     save_json(run.history, Path(cfg.run_dir) / "history.json")
@@ -318,6 +319,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
 
         warm_start(agent.qnet, cfg.init_from, list(cfg.stage.controlled))
         agent.target.init_()  # the target network starts from the warm-started weights
+        agent.restart_average()
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
     n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))  # None: one-step TD
 
@@ -346,7 +348,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     max_seconds = 60.0 * loop.max_minutes if loop.max_minutes else math.inf
     if eval_every and target_rate is not None and resume is None:
         # a warm-started policy may already meet the target: then it needs no frames at all
-        success, final_r = greedy_success(cfg, agent.actor, 0, logger)
+        success, final_r = greedy_success(cfg, agent.greedy, 0, logger)
         if loop.keep_best:
             keep_if_best(run, agent, best_weights, success, final_r)
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
@@ -388,7 +390,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 bar.set_postfix(ep_r=f"{run.last_episode_r:.3f}", r=f"{record['train/r_mean']:.3f}",
                                 eps=f"{record['train/epsilon']:.2f}", refresh=False)
                 if run.frames >= run.next_eval:  # greedy evaluation during training (the stage's protocol)
-                    success, final_r = greedy_success(cfg, agent.actor, run.frames, logger)
+                    success, final_r = greedy_success(cfg, agent.greedy, run.frames, logger)
                     record["eval/success_rate"] = success
                     if loop.keep_best:
                         keep_if_best(run, agent, best_weights, success, final_r)
@@ -420,7 +422,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))
     if loop.keep_best and not (run.history and run.history[-1].get("eval/success_rate") is not None):
-        keep_if_best(run, agent, best_weights, *greedy_success(cfg, agent.actor, run.frames, logger))  # the last weights
+        keep_if_best(run, agent, best_weights, *greedy_success(cfg, agent.greedy, run.frames, logger))  # the last weights
     ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
     if run.best is not None:
         print(f"the model keeps the weights of frame {run.best['frames']} (validation success "

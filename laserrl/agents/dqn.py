@@ -4,7 +4,8 @@ Everything here is TorchRL's own: ``QValueActor``, ``EGreedyModule``, ``DQNLoss`
 (double DQN, delayed target), ``SoftUpdate``/``HardUpdate``, and the (prioritized)
 replay buffers, and ``MultiStepTransform`` for n-step returns. The only thing added is
 the exponential epsilon decay the paper uses, which sets ``EGreedyModule.eps`` from the
-frame count.
+frame count; and torch's ``AveragedModel`` for an average of the weights that acts greedily
+(``agent.average_decay``).
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.transforms import MultiStepTransform
@@ -131,6 +133,13 @@ class DQNAgent:
     followed by ``egreedy`` (epsilon set from ``schedule``), ``loss`` TorchRL's ``DQNLoss``
     (online and delayed target network), ``target`` its soft or hard updater, and
     ``optimizer`` / ``lr_schedule`` Adam with a step-wise learning-rate decay.
+
+    ``averaged`` (with ``agent.average_decay``): an exponential moving average of the
+    Q-network's weights over the gradient updates (torch's ``AveragedModel``), whose greedy
+    actor ``greedy`` is the one evaluated and saved; without it ``greedy`` is ``actor``.
+    Averaging the weights over a few thousand updates smooths the greedy policy, whose choice
+    between near-equal actions otherwise flips from one evaluation to the next (Anschel et
+    al. 2017, "Averaged-DQN", average Q-estimates for the same reason).
     """
 
     qnet: FieldQNet
@@ -144,11 +153,13 @@ class DQNAgent:
     lr_schedule: torch.optim.lr_scheduler.StepLR
     max_grad_norm: float
     prioritized: bool
+    averaged: AveragedModel | None
+    greedy: QValueActor
 
     @classmethod
     def build(cls, action_spec, n: int, *, network, exploration, gamma: float, loss_function: str, target,
               lr: float, weight_decay: float, lr_decay: float, lr_decay_updates: int, max_grad_norm: float,
-              prioritized: bool) -> "DQNAgent":
+              prioritized: bool, average_decay: float | None = None) -> "DQNAgent":
         """The agent for an env with ``action_spec`` (unbatched) and ``n`` field samples; the
         keyword groups are the ``agent`` and ``optim`` config entries."""
         qnet = make_qnet(int(action_spec.n), n, network["channels"], network["kernel_size"], network["pool"],
@@ -158,7 +169,13 @@ class DQNAgent:
         lr_decay = check_number(lr_decay, "optim.lr_decay", low=0, high=1, low_open=True)
         lr_decay_updates = check_number(lr_decay_updates, "optim.lr_decay_updates", low=1, integer=True)
         max_grad_norm = check_number(max_grad_norm, "optim.max_grad_norm", low=0, low_open=True)
+        average_decay = check_number(average_decay, "agent.average_decay", low=0, high=1, low_open=True, optional=True)
+        if average_decay == 1:
+            raise ConfigError("agent.average_decay must be below 1 (1 would never move the average), got 1")
+        averaged = None if average_decay is None else AveragedModel(
+            qnet, multi_avg_fn=get_ema_multi_avg_fn(float(average_decay)), use_buffers=True)
         actor = make_actor(qnet, action_spec)
+        greedy = actor if averaged is None else make_actor(averaged.module, action_spec)
         schedule = EpsilonSchedule(**exploration)
         policy, egreedy = make_exploration_policy(actor, action_spec, schedule)
         loss = make_loss(actor, action_spec, gamma, loss_function)
@@ -167,7 +184,17 @@ class DQNAgent:
         # stepped once per gradient update: lr * lr_decay ** (updates // lr_decay_updates)
         lr_schedule = torch.optim.lr_scheduler.StepLR(optimizer, step_size=int(lr_decay_updates), gamma=float(lr_decay))
         return cls(qnet, actor, policy, egreedy, schedule, loss, updater, optimizer, lr_schedule, float(max_grad_norm),
-                   bool(prioritized))
+                   bool(prioritized), averaged, greedy)
+
+    def restart_average(self) -> None:
+        """Start the weight average afresh from the Q-network as it is (after a warm start)."""
+        if self.averaged is not None:
+            self.averaged.module.load_state_dict(self.qnet.state_dict())
+            self.averaged.n_averaged.zero_()
+
+    def model_weights(self) -> dict:
+        """The weights of the greedy actor that is evaluated and saved: the average, or the Q-network's."""
+        return (self.averaged.module if self.averaged is not None else self.qnet).state_dict()
 
     def explore(self, frames: int) -> float:
         """Set epsilon for ``frames`` collected so far; returns it."""
@@ -185,6 +212,8 @@ class DQNAgent:
         self.optimizer.step()
         self.lr_schedule.step()
         self.target.step()
+        if self.averaged is not None:
+            self.averaged.update_parameters(self.qnet)
         if self.prioritized:
             replay.update_tensordict_priority(sample)
         return float(losses["loss"].detach())
@@ -202,7 +231,8 @@ class DQNAgent:
         """What learning needs beyond the Q-network and the optimizer: the loss module (online and
         target network), the learning-rate schedule, epsilon and a hard target update's counter."""
         return {"loss": self.loss.state_dict(), "lr_schedule": self.lr_schedule.state_dict(),
-                "egreedy": self.egreedy.state_dict(), "target_counter": getattr(self.target, "counter", None)}
+                "egreedy": self.egreedy.state_dict(), "target_counter": getattr(self.target, "counter", None),
+                "average": self.averaged.state_dict() if self.averaged is not None else None}
 
     def load_learning_state(self, state: dict, optimizer_state: dict, updates: int) -> None:
         """Continue from ``learning_state()`` and the optimizer's state of a checkpoint made after
@@ -216,3 +246,5 @@ class DQNAgent:
         self.egreedy.load_state_dict(state["egreedy"])
         if state["target_counter"] is not None:
             self.target.counter = state["target_counter"]
+        if self.averaged is not None and state.get("average") is not None:
+            self.averaged.load_state_dict(state["average"])

@@ -136,3 +136,51 @@ def test_n_steps_must_be_a_positive_integer():
     for bad in (0, -2, 2.5, True, "3"):
         with pytest.raises(ValueError, match="agent.n_steps"):
             make_n_step(bad, 0.9)
+
+
+def _agent(env, average_decay):
+    from laserrl.agents.dqn import DQNAgent
+
+    return DQNAgent.build(env.action_spec_unbatched, 256, network={"channels": (4, 4), "kernel_size": 3, "pool": 4,
+                          "hidden": (16,), "negative_slope": 0.01},
+                          exploration={"start": 1.0, "end": 0.05, "decay_frames": 100.0}, gamma=0.9,
+                          loss_function="smooth_l1", target={"kind": "soft", "tau": 0.01}, lr=1e-2, weight_decay=0.0,
+                          lr_decay=1.0, lr_decay_updates=100, max_grad_norm=10.0, prioritized=False,
+                          average_decay=average_decay)
+
+
+def test_averaged_weights_follow_the_updates_as_an_exponential_moving_average():
+    env = LaserCavityEnv(4, max_round_trips=2, seed=0)
+    torch.manual_seed(0)
+    agent = _agent(env, 0.5)
+    assert agent.greedy is not agent.actor
+    replay = make_replay("uniform", 64, 8)
+    td = env.rollout(4, agent.policy)
+    replay.extend(td.reshape(-1))
+    key = next(k for k in agent.qnet.state_dict() if k.endswith("weight"))
+    agent.restart_average()
+    start = agent.qnet.state_dict()[key].clone()
+    agent.update(replay)  # the first update copies the weights
+    first = agent.qnet.state_dict()[key].clone()
+    torch.testing.assert_close(agent.model_weights()[key], first)
+    agent.update(replay)
+    second = agent.qnet.state_dict()[key]
+    torch.testing.assert_close(agent.model_weights()[key], 0.5 * first + 0.5 * second)
+    assert not torch.equal(first, start) and not torch.equal(second, first)
+    # the greedy actor acts with the average, not the online network
+    with torch.no_grad():
+        obs = env.reset()
+        q_avg = agent.greedy(obs.clone())["action_value"]
+        q_online = agent.actor(obs.clone())["action_value"]
+    assert not torch.allclose(q_avg, q_online)
+    # without averaging the greedy actor is the online one
+    plain = _agent(env, None)
+    assert plain.greedy is plain.actor and plain.averaged is None
+
+
+@pytest.mark.parametrize("decay", [0.0, 1.0, 1.5, float("nan")])
+def test_average_decay_outside_0_1_is_named(decay):
+    from laserrl.validate import ConfigError
+
+    with pytest.raises(ConfigError, match="agent.average_decay"):
+        _agent(LaserCavityEnv(1, max_round_trips=2, seed=0), decay)
