@@ -1,4 +1,5 @@
 """Every config under conf/ composes, and the composed training configs pass the checks."""
+import re
 from pathlib import Path
 
 import pytest
@@ -12,8 +13,22 @@ from laserrl.paths import CONF_DIR
 CONF = Path(CONF_DIR)
 # groups of laserrl-control (conf/control.yaml) compose there: tests/control/test_app.py
 CONTROL_GROUPS = ("controller", "scenario")
-GROUPS = {g.name: sorted(p.stem for p in g.glob("*.yaml")) for g in CONF.iterdir()
-          if g.is_dir() and g.name not in CONTROL_GROUPS}
+APP_CONFIG = {"train": "config", "eval": "eval", "control": "control"}
+
+
+def experiment_app(name: str) -> str:
+    """The command an experiment file is for, from its how-to-run lines (laserrl-train|eval|control experiment=NAME)."""
+    text = (CONF / "experiment" / f"{name}.yaml").read_text()
+    found = re.findall(rf"^#.*laserrl-(train|eval|control)\b.*experiment=\[?[\w,]*\b{name}\b", text, re.M)
+    assert found, f"experiment/{name}.yaml does not say how to run it (laserrl-... experiment={name})"
+    assert len(set(found)) == 1, f"experiment/{name}.yaml names several commands: {sorted(set(found))}"
+    return found[0]
+
+
+EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+GROUPS = {g.name: [o for o in sorted(p.stem for p in g.glob("*.yaml"))
+                   if g.name != "experiment" or experiment_app(o) == "train"]
+          for g in CONF.iterdir() if g.is_dir() and g.name not in CONTROL_GROUPS}
 
 
 def _compose(overrides, name="config"):
@@ -29,6 +44,17 @@ def test_every_group_option_composes_and_builds(group, option):
     make_params(container)  # physics values are valid CavityParams
     task = make_task(container, OmegaConf.to_container(cfg.stage, resolve=True))
     assert task.num_actions == 3 ** len(cfg.stage.controlled)
+
+
+@pytest.mark.parametrize("name", [n for n in EXPERIMENTS if experiment_app(n) != "train"])
+def test_eval_and_control_experiments_compose_with_their_command(name):
+    app = experiment_app(name)
+    cfg = _compose([f"experiment={name}"], name=APP_CONFIG[app])
+    assert "checkpoint" in cfg and cfg.checkpoint is None  # the model to run is the user's to give
+    if app == "eval":
+        assert cfg.stage.name == "miso" and len(cfg.eval.K) == 13 and cfg.eval.K[0] == -0.2 and cfg.eval.K[-1] == 0.4
+    else:
+        assert cfg.scenario.bounds == [-0.2, 0.4] and cfg.controller.name == "all"
 
 
 def test_default_is_the_papers_single_input_task():
