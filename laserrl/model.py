@@ -289,12 +289,13 @@ def export_checkpoint(checkpoint: str | os.PathLike, out: str | os.PathLike | No
     into ``out`` (default: ``RUN/model``); refuses to overwrite. The checkpoint is read with
     ``torch.load(weights_only=True)``: a checkpoint holding pickled objects is refused (its
     message names ``python -m laserrl.checkpoint convert`` for files one made oneself). The
-    weights exported are those a ``train.keep_best`` run kept, else the last ones."""
+    weights exported are those a ``train.keep_best`` run kept, else the weight average of an
+    ``agent.average_decay`` run, else the last ones."""
     state = load_checkpoint(checkpoint)
     ckpt = Path(state["path"])
     run = ckpt.parent.parent if ckpt.parent.name == "checkpoints" else ckpt.parent
     out = Path(out) if out is not None else run / "model"
-    weights = state.get("best_qnet") or state["qnet"]
+    weights = state.get("best_qnet") or state.get("averaged_qnet") or state["qnet"]
     meta = model_metadata(state["config"], state["num_actions"], frames=state.get("frames"),
                           exported_from=str(ckpt), checkpoint_format=CHECKPOINT_FORMAT)
     summary = run / "summary.json"

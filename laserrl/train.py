@@ -222,6 +222,7 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "epsilon": float(agent.egreedy.eps), "frames": run.frames, "updates": run.updates,
         "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
         "config": config, **({"best_qnet": best_weights} if best_weights else {}),
+        **({"averaged_qnet": agent.model_weights()} if agent.averaged is not None else {}),
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
     }, with_replay)

@@ -184,3 +184,26 @@ def test_average_decay_outside_0_1_is_named(decay):
 
     with pytest.raises(ConfigError, match="agent.average_decay"):
         _agent(LaserCavityEnv(1, max_round_trips=2, seed=0), decay)
+
+
+def test_a_run_with_averaged_weights_saves_and_exports_the_average(tmp_path):
+    """The run's model/ holds the weight average; the checkpoint keeps the online weights for
+    resuming, and exporting the checkpoint gives the average again."""
+    from hydra import compose, initialize_config_dir
+
+    from laserrl.checkpoint import load_checkpoint
+    from laserrl.model import export_checkpoint, load_model
+    from laserrl.paths import CONF_DIR
+    from laserrl.train import train
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[
+            "experiment=smoke", "env.physics.n=64", "env.physics.z_steps=2", "train.progress=false",
+            "agent.average_decay=0.5", "eval.after_training=false", f"run_dir={tmp_path / 'run'}"])
+    train(cfg)
+    ckpt = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
+    model = load_model(tmp_path / "run")
+    assert all(torch.equal(model["qnet"][k], v) for k, v in ckpt["averaged_qnet"].items())
+    assert any(not torch.equal(ckpt["qnet"][k], v) for k, v in ckpt["averaged_qnet"].items())
+    exported = load_model(export_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt", tmp_path / "exported"))
+    assert all(torch.equal(exported["qnet"][k], v) for k, v in ckpt["averaged_qnet"].items())
