@@ -160,10 +160,13 @@ def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
 
 
 def test_transfer_then_bank_generalisation(trained, tmp_path):
-    """experiment=transfer_k fine-tunes the base to another K (and trains from scratch),
-    counting frames to success; laserrl-eval then evaluates base + fine-tuned as a bank."""
+    """experiment=transfer_k fine-tunes the base to another K (and trains from scratch, here
+    through a curriculum whose earlier stage is the base: transfer.scratch_from, whose frames
+    count), counting frames to success; laserrl-eval then evaluates base + fine-tuned as a bank."""
     base, _ = trained
+    base_frames = json.loads((base / "summary.json").read_text())["frames"]
     res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
+              f"transfer.scratch_from={base}",
               "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=64", "transfer.scratch.train.total_frames=64",
               "train.eval_every_frames=32", "train.stop_at_success=0.0", "eval.steps=2", "eval.starts_deg=[-30]",
               "+transfer.by_K={0:{stage:{max_steps:3}},0.3:{stage:{max_steps:5}}}",
@@ -175,9 +178,15 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
         assert sub["stage"]["max_steps"] == 3
     out = json.loads((tmp_path / "transfer.json").read_text())
     (row,) = out["rows"]
-    # a success-rate target of 0 is met by the evaluation before training: no frames needed
-    assert row["K"] == 0.0 and row["finetune"]["frames_to_success"] == 0 == row["scratch"]["frames_to_success"]
-    assert row["finetune"]["frames"] == 0
+    # a success-rate target of 0 is met by the evaluation before training: no frames needed, but the
+    # scratch run's curriculum needed the base's frames first
+    assert row["K"] == 0.0 and row["finetune"]["frames_to_success"] == 0 and row["finetune"]["frames"] == 0
+    assert row["scratch"]["frames_to_success"] == base_frames == row["scratch"]["frames"] == out["scratch_frames_before"]
+    assert row["finetune"]["frames_before"] == 0 and "earlier stages" in (tmp_path / "transfer.md").read_text()
+    from laserrl.model import load_model
+
+    scratch = load_model(tmp_path / "K+0.00-scratch")
+    assert scratch["config"]["init_from"] == str(base) and scratch["meta"]["card"]["frames_since_scratch"] == base_frames
     tuned = tmp_path / "K+0.00-finetune" / "model"
     state = torch.load(tmp_path / "K+0.00-finetune" / "checkpoints" / "last.pt", weights_only=False)
     assert state["config"]["stage"]["K"] == 0.0 and state["config"]["init_from"] == str(base)
@@ -185,7 +194,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
     assert "| 0 |" in table
     # run again in the same directory: finished sub-runs are reused, not retrained
     res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
-              "transfer.Ks=[0.0]", "train.eval_every_frames=32", "train.stop_at_success=0.0",
+              f"transfer.scratch_from={base}", "transfer.Ks=[0.0]", "train.eval_every_frames=32", "train.stop_at_success=0.0",
               f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.count("reusing") == 2 and (tmp_path / "transfer.md").read_text() == table
@@ -210,33 +219,7 @@ def test_transfer_then_bank_generalisation(trained, tmp_path):
               f"hydra.run.dir={tmp_path / 'bad_bank'}", cwd=tmp_path)
     _one_line_error(res, "bank[1]")
     assert not (tmp_path / "bad_bank" / "eval.json").exists()
-
-
-def test_transfer_scratch_through_a_curriculum_counts_the_earlier_stages_frames(trained, tmp_path):
-    """transfer.scratch_from: the scratch run starts from the curriculum's stage before, whose
-    frames (and those of the models it grew from) count towards the scratch run's."""
-    base, _ = trained
-    base_frames = json.loads((base / "summary.json").read_text())["frames"]
-    res = run("laserrl-train", "experiment=[smoke,transfer_k]", *SMOKE[1:], f"transfer.base={base}",
-              f"transfer.scratch_from={base}", "transfer.Ks=[0.0]", "transfer.finetune.train.total_frames=32",
-              "transfer.scratch.train.total_frames=32", "train.eval_every_frames=32", "train.stop_at_success=1.0",
-              "eval.steps=2", "eval.starts_deg=[-30]", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
-    assert res.returncode == 0, res.stderr[-3000:]
-    out = json.loads((tmp_path / "transfer.json").read_text())
-    (row,) = out["rows"]
-    assert out["scratch_frames_before"] == base_frames and row["scratch"]["frames_before"] == base_frames
-    scratch_summary = json.loads((tmp_path / "K+0.00-scratch" / "summary.json").read_text())
-    assert row["scratch"]["frames"] == base_frames + scratch_summary["frames"]
-    if row["scratch"]["frames_to_success"] is not None:
-        assert row["scratch"]["frames_to_success"] == base_frames + scratch_summary["frames_to_success"]
-    assert row["finetune"]["frames_before"] == 0
-    from laserrl.model import load_model
-
-    scratch = load_model(tmp_path / "K+0.00-scratch")
-    assert scratch["config"]["init_from"] == str(base)
-    assert scratch["meta"]["card"]["frames_since_scratch"] == base_frames + scratch_summary["frames"]
-    assert "earlier stages" in (tmp_path / "transfer.md").read_text()
-    # a model that does not record the frames of the models it grew from is refused before any training
+    # a scratch_from model that does not record the frames of the models it grew from is refused before training
     import shutil
 
     unknown = tmp_path / "unknown"
