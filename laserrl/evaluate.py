@@ -26,13 +26,14 @@ from tensordict import TensorDict
 
 from laserrl.agents.dqn import make_actor, make_qnet
 from laserrl.checkpoint import CheckpointError
-from laserrl.model import load_model
+from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
-    """Rebuild the Q-network of a checkpoint for an env with ``action_spec``."""
+    """Rebuild the Q-network of a checkpoint for an env with ``action_spec`` (the mean of its
+    members' Q-values for an ensemble, ``MeanQ``)."""
     cfg = state["config"]
     net = cfg["agent"]["network"]
     n_env = int(action_spec.n)
@@ -41,14 +42,21 @@ def load_qnet(state: Mapping[str, Any], action_spec):
             f"checkpoint {state.get('path')} has a {state['num_actions']}-action head (stage {state.get('stage')}); "
             f"this task needs {n_env} actions"
         )
-    qnet = make_qnet(n_env, int(cfg["env"].get("physics", {}).get("n", 256)), net["channels"], net["kernel_size"],
-                     net["pool"], net["hidden"], net["negative_slope"])
-    try:
-        qnet.load_state_dict(state["qnet"])
-    except RuntimeError as err:
-        raise CheckpointError(f"checkpoint {state.get('path')} does not match its network config: {str(err).splitlines()[0]}") from None
-    qnet.eval()
-    return qnet
+    qnets = []
+    for weights in ensemble_members(state):  # one, or the members of an ensemble
+        qnet = make_qnet(n_env, int(cfg["env"].get("physics", {}).get("n", 256)), net["channels"],
+                         net["kernel_size"], net["pool"], net["hidden"], net["negative_slope"])
+        try:
+            qnet.load_state_dict(weights)
+        except RuntimeError as err:
+            raise CheckpointError(f"checkpoint {state.get('path')} does not match its network config: "
+                                  f"{str(err).splitlines()[0]}") from None
+        qnets.append(qnet.eval())
+    if len(qnets) == 1:
+        return qnets[0]
+    from laserrl.agents.bank import MeanQ
+
+    return MeanQ(qnets).eval()
 
 
 def load_agent(state: Mapping[str, Any], action_spec):

@@ -13,6 +13,11 @@ Loading reads the JSON with ``json`` and the tensors with ``safetensors``; nothi
 
 Wherever a model is accepted, ``zoo:NAME`` names one shipped with laserrl (``laserrl.zoo``),
 and a run directory (``RUN`` or a curriculum stage ``RUN/03-miso``) names its ``model``.
+
+An ensemble (``python -m laserrl.model ensemble OUT M1 M2 ...``) is a model of several
+Q-networks trained for the same task (e.g. seeds of one recipe): model.json's ``ensemble``
+gives their number, the tensors of member i are stored under ``members.i.``, and it acts on
+the mean of their Q-values (``laserrl.agents.bank.MeanQ``).
 """
 from __future__ import annotations
 
@@ -237,6 +242,9 @@ def read_meta(directory: Path) -> dict:
     n = meta.get("num_actions")
     if not isinstance(n, int) or isinstance(n, bool) or n != 3 ** len(stage["controlled"]):
         raise ModelError(f"{path}: num_actions {n!r} does not fit {len(stage['controlled'])} controlled angles")
+    members = meta.get("ensemble", 1)
+    if not isinstance(members, int) or isinstance(members, bool) or members < 1:
+        raise ModelError(f"{path}: ensemble {members!r} is not a number of models")
     return meta
 
 
@@ -270,6 +278,52 @@ def load_model(spec: str | os.PathLike) -> dict:
     frames = meta.get("frames", (meta.get("card") or {}).get("frames"))
     return {"qnet": weights, "config": meta["config"], "num_actions": meta["num_actions"], "stage": meta.get("stage"),
             "frames": frames, "path": shown, "dir": str(directory), "meta": meta}
+
+
+def ensemble_members(state: Mapping) -> list[dict[str, torch.Tensor]]:
+    """The Q-network weights of each member of a loaded model (one for a plain model)."""
+    count = int(state["meta"].get("ensemble", 1))
+    if count == 1:
+        return [dict(state["qnet"])]
+    members: list[dict[str, torch.Tensor]] = [{} for _ in range(count)]
+    for key, value in state["qnet"].items():
+        prefix, _, rest = key.partition(".")
+        index, _, name = rest.partition(".")
+        if prefix != "members" or not index.isdigit() or int(index) >= count or not name:
+            raise ModelError(f"{state['path']}: tensor {key!r} belongs to no member of the ensemble of {count}")
+        members[int(index)][name] = value
+    if not all(members):
+        raise ModelError(f"{state['path']}: an ensemble of {count} with members missing")
+    return members
+
+
+def save_ensemble(out: str | os.PathLike, specs: list[str]) -> Path:
+    """Write the ensemble of the models ``specs`` (each a model, see ``model_dir``) to ``out``;
+    refuses an existing ``out``, models of different tasks or networks, and ensembles as members."""
+    if len(specs) < 2:
+        raise ModelError("an ensemble needs at least two models")
+    states = [load_model(spec) for spec in specs]
+    first = states[0]
+    task = lambda st: (st["num_actions"], st["config"]["stage"].get("name"), st["config"]["stage"].get("K"),  # noqa: E731
+                       st["config"]["agent"].get("network"), st["config"]["env"].get("physics"))
+    for st in states:
+        if st["meta"].get("ensemble", 1) != 1:
+            raise ModelError(f"{st['path']} is an ensemble itself; give its members")
+        if task(st) != task(first):
+            raise ModelError(f"{st['path']} is trained for another task or network than {first['path']} (stage, K, "
+                             "actions, network and physics must agree)")
+    weights = {f"members.{i}.{k}": v for i, st in enumerate(states) for k, v in st["qnet"].items()}
+    cards = [st["meta"].get("card") or {} for st in states]
+    card = {"command": " ; ".join(c.get("command") or "not recorded" for c in cards),
+            **{key: cards[0].get(key) for key in ("commit", "laserrl_version", "machine", "date")},
+            "frames": sum(int(st["frames"] or 0) for st in states),
+            "episodes": sum(int(c.get("episodes") or 0) for c in cards),
+            "train_seconds": round(sum(float(c.get("train_seconds") or 0) for c in cards), 1),
+            "members": [{"model": st["path"], **c} for st, c in zip(states, cards)],
+            "notes": f"the mean of the Q-values of {len(states)} models (laserrl.model ensemble)"}
+    meta = model_metadata(first["config"], first["num_actions"], frames=card["frames"], ensemble=len(states),
+                          card=card)
+    return save_model(out, weights, meta)
 
 
 def frames_since_scratch(state: Mapping) -> int | None:
@@ -308,7 +362,8 @@ def export_checkpoint(checkpoint: str | os.PathLike, out: str | os.PathLike | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m laserrl.model export CHECKPOINT [OUT]``: see ``export_checkpoint``."""
+    """``python -m laserrl.model export CHECKPOINT [OUT]`` (``export_checkpoint``) and
+    ``python -m laserrl.model ensemble OUT MODEL MODEL ...`` (``save_ensemble``)."""
     import argparse
 
     from laserrl.checkpoint import one_line_errors
@@ -318,7 +373,12 @@ def main(argv: list[str] | None = None) -> int:
     export = sub.add_parser("export", help="write the model (safetensors + JSON) of a training checkpoint")
     export.add_argument("path", help="RUN/checkpoints/last.pt (or the run directory)")
     export.add_argument("out", nargs="?", help="model directory to write (default: RUN/model)")
+    ensemble = sub.add_parser("ensemble", help="write one model that acts on the mean Q-values of several models")
+    ensemble.add_argument("out", help="model directory to write (must not exist)")
+    ensemble.add_argument("models", nargs="+", help="the members: zoo:NAME, run or model directories")
     args = parser.parse_args(argv)
+    if args.command == "ensemble":
+        return one_line_errors(parser.prog, lambda: print(f"model: {save_ensemble(args.out, args.models)}"))
     return one_line_errors(parser.prog, lambda: print(f"model: {export_checkpoint(args.path, args.out)}"))
 
 

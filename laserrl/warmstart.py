@@ -50,6 +50,9 @@ def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | Non
         controlled: the angles the new stage controls (needed only when the head grows).
     """
     state = load_model(checkpoint)
+    if state["meta"].get("ensemble", 1) != 1:
+        raise CheckpointError(f"{state['path']} is an ensemble of {state['meta']['ensemble']} models; warm-start "
+                              "from one of its members")
     weights = dict(state["qnet"])
     old_n, new_n = int(state["num_actions"]), qnet.num_actions
     old_controlled = list(state["config"].get("stage", {}).get("controlled", []))

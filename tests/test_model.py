@@ -132,3 +132,77 @@ def test_export_writes_the_model_of_a_checkpoint_and_refuses_to_overwrite(tmp_pa
     assert model_main(["export", str(ckpt)]) == 2  # RUN/model exists: nothing overwritten
     with pytest.raises(ModelError, match="exists already"):
         export_checkpoint(ckpt)
+
+
+def _members(tmp_path: Path, count: int = 2) -> list[Path]:
+    from laserrl.agents.dqn import make_qnet
+
+    net = _config()["agent"]["network"]
+    out = []
+    for i in range(count):
+        torch.manual_seed(i)
+        qnet = make_qnet(3, 256, net["channels"], net["kernel_size"], net["pool"], net["hidden"], net["negative_slope"])
+        card = {"command": f"laserrl-train seed={i}", "frames": 128, "episodes": 6, "train_seconds": 10.0}
+        out.append(save_model(tmp_path / f"m{i}", qnet.state_dict(), model_metadata(_config(), 3, frames=128, card=card)))
+    return out
+
+
+def test_an_ensemble_acts_on_the_mean_q_of_its_members(tmp_path):
+    from torchrl.data import Categorical
+
+    from laserrl.evaluate import load_qnet
+    from laserrl.model import main, save_ensemble
+
+    members = _members(tmp_path)
+    assert main(["ensemble", str(tmp_path / "ens"), *map(str, members)]) == 0
+    state = load_model(tmp_path / "ens")
+    assert state["meta"]["ensemble"] == 2 and state["frames"] == 256
+    card = state["meta"]["card"]
+    assert card["command"] == "laserrl-train seed=0 ; laserrl-train seed=1" and card["train_seconds"] == 20.0
+    fields, angles = torch.randn(5, 4, 256), torch.randn(5, 4)
+    with torch.no_grad():
+        q = load_qnet(state, Categorical(3))(fields, angles)
+        singles = [load_qnet(load_model(m), Categorical(3))(fields, angles) for m in members]
+    torch.testing.assert_close(q, (singles[0] + singles[1]) / 2)
+    assert not torch.allclose(singles[0], singles[1])
+    # refused: an existing directory, a single model, an ensemble as a member, another task
+    with pytest.raises(ModelError, match="exists already"):
+        save_ensemble(tmp_path / "ens", members)
+    with pytest.raises(ModelError, match="at least two"):
+        save_ensemble(tmp_path / "one", members[:1])
+    with pytest.raises(ModelError, match="is an ensemble itself"):
+        save_ensemble(tmp_path / "nested", [tmp_path / "ens", members[0]])
+    meta = json.loads((members[1] / META).read_text())
+    meta["config"]["stage"]["K"] = 0.3
+    (members[1] / META).write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="another task or network"):
+        save_ensemble(tmp_path / "mixed", members)
+
+
+def test_an_ensemble_with_a_stray_tensor_or_a_bad_count_is_refused(tmp_path):
+    from laserrl.model import save_ensemble
+
+    ens = save_ensemble(tmp_path / "ens", _members(tmp_path))
+    from laserrl.model import ensemble_members
+
+    meta = json.loads((ens / META).read_text())
+    meta["ensemble"] = 3  # more members than the weights hold
+    (ens / META).write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="members missing"):
+        ensemble_members(load_model(ens))
+    meta["ensemble"] = "two"
+    (ens / META).write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="ensemble 'two'"):
+        load_model(ens)
+
+
+def test_warm_starting_from_an_ensemble_is_refused(tmp_path):
+    from laserrl.agents.dqn import make_qnet
+    from laserrl.model import save_ensemble
+    from laserrl.warmstart import warm_start
+
+    ens = save_ensemble(tmp_path / "ens", _members(tmp_path))
+    net = _config()["agent"]["network"]
+    qnet = make_qnet(3, 256, net["channels"], net["kernel_size"], net["pool"], net["hidden"], net["negative_slope"])
+    with pytest.raises(Exception, match="is an ensemble of 2 models; warm-start from one of its members"):
+        warm_start(qnet, str(ens), ["alpha1"])

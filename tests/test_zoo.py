@@ -20,7 +20,7 @@ def test_the_zoo_holds_the_models_the_docs_cite():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_every_zoo_model_is_small_and_has_a_model_card(name):
-    assert zoo.size(name) < zoo.MAX_BYTES
+    assert zoo.size(name) < zoo.max_bytes(name)
     state = load_model(f"zoo:{name}")
     card = state["meta"]["card"]
     for key in ("command", "commit", "machine", "date", "frames", "train_seconds"):

@@ -61,6 +61,11 @@ def describe(name: str) -> str:
     return "\n".join(lines)
 
 
+def max_bytes(name: str) -> int:
+    """The most a zoo model may take: ``MAX_BYTES`` per member of an ensemble."""
+    return MAX_BYTES * int(json.loads((zoo_path(name) / "model.json").read_text()).get("ensemble", 1))
+
+
 def size(name: str) -> int:
     return sum(p.stat().st_size for p in zoo_path(name).rglob("*") if p.is_file())
 
@@ -98,8 +103,8 @@ def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_ch
         if heldout is not None:
             changes["heldout"] = eval_summary(json.loads(Path(heldout).read_text()))
         update_model_meta(target, **changes)
-        if size(name) > MAX_BYTES:
-            raise ModelError(f"zoo:{name} would take {size(name)} bytes (> {MAX_BYTES})")
+        if size(name) > max_bytes(name):
+            raise ModelError(f"zoo:{name} would take {size(name)} bytes (> {max_bytes(name)})")
     except BaseException:
         shutil.rmtree(target, ignore_errors=True)
         raise
