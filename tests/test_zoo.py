@@ -32,11 +32,12 @@ def test_every_zoo_model_is_small_and_has_a_model_card(name):
 
 
 def _short_protocol(name: str, recorded: dict) -> dict:
-    """The recorded evaluation's own settings (seed, starts, repeats), with the physics compiled off."""
+    """The recorded evaluation's own settings (seed, starts, repeats), compiled as laserrl-eval runs
+    them (one compilation serves every model of the zoo, whose physics agree)."""
     keep = ("steps", "success_r", "hold_r", "repeats", "seed", "K", "max_round_trips", "min_round_trips")
     eval_cfg = {k: recorded.get(k) for k in keep}
     eval_cfg["starts_deg"] = sorted({p["initial_angle_deg"] for p in recorded["per_start"]})
-    return {**eval_cfg, "compile": False, "plots": False}
+    return {**eval_cfg, "compile": True, "plots": False}
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -48,7 +49,8 @@ def test_every_zoo_model_reproduces_its_recorded_success(name, tmp_path):
     result = evaluate_checkpoint(f"zoo:{name}", _short_protocol(name, recorded), tmp_path)
     n = len(recorded["per_start"])
     assert len(result["per_start"]) == n
-    assert abs(result["success_rate"] - recorded["success_rate"]) <= 1.0 / n + 1e-9, (result["success_rate"], recorded)
+    # success rates are stored as float32 (0.7 - 0.8 = -0.10000002): one rollout is 1 / n up to that rounding
+    assert abs(result["success_rate"] - recorded["success_rate"]) <= 1.0 / n + 1e-6, (result["success_rate"], recorded)
 
 
 def test_the_zoo_command_lists_and_describes(tmp_path):

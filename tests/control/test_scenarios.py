@@ -21,8 +21,8 @@ def _scenario(name, overrides=()):
     return Scenario(**OmegaConf.to_container(cfg.scenario, resolve=True))
 
 
-def test_all_five_scenarios_exist():
-    assert set(SCENARIOS) == {"constant", "random_walk", "sinusoid", "jumps", "drift_jumps"}
+def test_all_six_scenarios_exist():
+    assert set(SCENARIOS) == {"constant", "random_walk", "sinusoid", "jumps", "drift_jumps", "drift_jumps_wide"}
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -32,7 +32,17 @@ def test_every_scenario_stays_within_bounds_and_starts_in_its_box(name):
     assert K.shape == (16, sc.steps) and angles.shape == (16, 4)
     assert (K >= sc.bounds[0]).all() and (K <= sc.bounds[1]).all()
     lo, hi = sc.init_angles_deg["alpha1"]
-    assert (angles[:, 0] >= lo).all() and (angles[:, 0] <= hi).all() and len(set(angles[:, 0])) == 16
+    assert (angles[:, 0] >= lo).all() and (angles[:, 0] <= hi).all()
+    assert len(set(angles[:, 0])) == (16 if lo < hi else 1)  # a range draws one start per cavity
+
+
+def test_the_wide_scenario_starts_at_the_four_controller_start_and_jumps_across_the_whole_range():
+    sc = _scenario("drift_jumps_wide")
+    K, angles = sc.sample(64, seed=0)
+    assert np.allclose(angles, [15.0, -5.0, 20.0, 84.0]) and sc.init_fields == "noise"
+    assert K.min() < -0.1 and K.max() > 0.3  # drift and jumps reach both ends of [-0.2, 0.4]
+    jumps = np.abs(K[:, 100] - K[:, 99])
+    assert (jumps >= 0.2).all()
 
 
 def test_constant():
