@@ -102,11 +102,18 @@ def convert_checkpoint(path: str | os.PathLike) -> Path:
 
 def one_line_errors(prog: str, command) -> int:
     """Run ``command()`` for a small command-line tool: 0, or 2 after one line on stderr for a
-    CheckpointError (a ModelError) or OSError."""
+    CheckpointError (a ModelError) or OSError. A reader that stops early (``| head``, ``| grep -q``)
+    is not an error: the rest of the output is dropped."""
+    import os
     import sys
 
     try:
         command()
+        sys.stdout.flush()
+    except BrokenPipeError:
+        # Python's documented way out: point stdout at devnull so that its flush at exit is quiet
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except (CheckpointError, OSError) as err:
         print(f"{prog}: error: {err}".splitlines()[0], file=sys.stderr)
         return 2

@@ -78,3 +78,12 @@ def test_add_copies_a_run_into_the_zoo_and_refuses_an_existing_name(tmp_path, mo
         zoo.add(run, "test-model")
     with pytest.raises(zoo.ModelError, match="lower-case"):
         zoo.add(run, "Bad/Name")
+
+
+def test_a_reader_that_stops_early_is_not_an_error():
+    """``laserrl-zoo list | grep -q NAME``: the reader closes the pipe before laserrl-zoo writes."""
+    exe = Path(sys.executable).parent / "laserrl-zoo"
+    proc = subprocess.Popen([str(exe), "list"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()  # before the tool has imported anything, let alone printed
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0 and err == b"", err
