@@ -53,6 +53,11 @@ class MeanQ(nn.Module):
         return torch.stack([net(fields, angles) for net in self.qnets]).mean(0)
 
 
+def _q_of(q: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
+    """The Q-values (*batch, A) of the chosen ``model`` (*batch,) per cavity, from all models' (M, *batch, A)."""
+    return torch.gather(q, 0, model[None, ..., None].expand(1, *q.shape[1:]))[0]
+
+
 class MaxQBank(nn.Module):
     """Q-values of the model with the highest max Q, per cavity; and that model's index."""
 
@@ -64,8 +69,7 @@ class MaxQBank(nn.Module):
     def forward(self, fields: torch.Tensor, angles: torch.Tensor):
         q = torch.stack([net(fields, angles) for net in self.qnets])  # (M, *batch, A)
         model = q.max(-1).values.argmax(0)  # (*batch,)
-        chosen = torch.gather(q, 0, model[None, ..., None].expand(1, *q.shape[1:]))[0]
-        return chosen, model
+        return _q_of(q, model), model
 
 
 def make_bank_actor(qnets: list[FieldQNet | MeanQ], action_spec) -> TensorDictSequential:
@@ -126,9 +130,7 @@ class TrialBank(nn.Module):
 
     def forward(self, fields: torch.Tensor, angles: torch.Tensor, r: torch.Tensor, step_count: torch.Tensor):
         model = self._choose(r.reshape(r.shape[:-1]).to(torch.float64), step_count.reshape(step_count.shape[:-1]))
-        q = torch.stack([net(fields, angles) for net in self.qnets])  # (M, *batch, A)
-        chosen = torch.gather(q, 0, model[None, ..., None].expand(1, *q.shape[1:]))[0]
-        return chosen, model
+        return _q_of(torch.stack([net(fields, angles) for net in self.qnets]), model), model
 
 
 def make_trial_actor(qnets: list[FieldQNet | MeanQ], action_spec, rule: TrialRule = TrialRule()) -> TensorDictSequential:
