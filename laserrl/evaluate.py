@@ -253,6 +253,20 @@ def _summary(result: dict) -> dict:
     return {k: result[k] for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock", "by_K")}
 
 
+def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> dict:
+    """A result over a K grid in the shape of ``evaluate_bank``'s: a bank evaluation as it is,
+    and one model's ``evaluate_policy`` result (``laserrl-eval checkpoint=M 'eval.K=[...]'``)
+    as the rule ``single`` of a bank without members."""
+    if "rules" in result:
+        return dict(result)
+    if "by_K" not in result:
+        raise ConfigError("not an evaluation over K: it has neither rules (a bank evaluation) nor by_K")
+    Ks = [float(k) for k in result["by_K"]]
+    rules = {"single": _summary(result)}
+    return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "rules": rules,
+            "grid_success": {"single": sum(v["success_rate"] >= 0.9 for v in result["by_K"].values()) / len(Ks)}}
+
+
 def _load_member(entry, index: int) -> list[dict]:
     """The checkpoints of one bank entry: a path, or a list of paths (an ensemble, ``MeanQ``)
     whose models were trained at the same K."""

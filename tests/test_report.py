@@ -23,7 +23,7 @@ CONF = Path(CONF_DIR)
 # every model trained on the spot in seconds: tiny physics, few frames, 3-step protocols
 TINY = [
     "threads=1", "report.checkpoints.siso=null", "report.checkpoints.duo=null", "report.checkpoints.miso=null",
-    "report.train_bank=true",
+    "report.checkpoints.k_base=null", "report.train_bank=true",
     "+report.train.common.env={num_envs:8,max_round_trips:5,compile:false,physics:{n:64,z_steps:2}}",
     "+report.train.common.collector.frames_per_batch=32", "+report.train.common.replay.init_random_frames=32",
     "+report.train.common.optim.batch_size=16",
@@ -31,11 +31,12 @@ TINY = [
     "+report.train.common.eval={steps:3,after_training:false}",
     "report.train.siso.train.total_frames=64", "report.train.siso.train.eval_every_frames=32",
     "report.train.duo.train.total_frames=64", "report.train.miso.train.total_frames=64",
+    "report.train.k_base.train.total_frames=64",
     "report.train.bank.transfer.Ks=[0.0,0.2]", "report.train.bank.transfer.finetune.train.total_frames=64",
     "report.fig3_starts=[-30]", "report.landscape.alpha1_deg=[-30,-20,5]",
     "report.landscape.map_alpha1_deg=[-30,-20,5]", "report.landscape.map_alpha2_deg=[-5,0,5]",
     "report.landscape.settle_round_trips=10", "report.generalisation.K=[0.0,0.2]", "report.generalisation.steps=3",
-    "report.control=['controller=all','num_cavities=2','scenario.steps=6','scenario.jumps.times=[2,4]']",
+    "report.control=['experiment=miso_hybrid','num_cavities=2','scenario.steps=6','scenario.jumps.times=[2,4]']",
 ]
 
 
@@ -89,7 +90,16 @@ def test_report_numbers_match_what_it_measured(smoke):
     assert f"r = {r_settled[1]:.4f}" in claims["r_planewave"]["laserrl"]
     # the straight path has as many steps as the agent's and ends where the agent ended
     assert len(numbers["paths"]["r_straight"]) == numbers["paths"]["steps"] == len(numbers["paths"]["agent_path_deg"])
-    assert report["meta"]["trained_on_the_spot"].keys() == {"siso", "duo", "miso", "bank"}
+    assert report["meta"]["trained_on_the_spot"].keys() == {"siso", "duo", "miso", "k_base", "bank"}
+    # the claims about other K start from the four-controller model at K = 0.1 (k_base): the bank is fine-tuned
+    # from it, it is the one model of fig. 6 and it drives the hybrid of fig. 7
+    from laserrl.model import load_model
+
+    k_base = report["checkpoints"]["k_base"]
+    assert load_model(k_base)["config"]["stage"]["K"] == 0.1
+    assert len(load_model(k_base)["config"]["stage"]["controlled"]) == 4
+    assert all(load_model(m)["config"]["init_from"] == k_base for m in report["checkpoints"]["bank"])
+    assert numbers["control"]["scenario"] == "drift_jumps_wide"
     # fig. 7: every controller ran on the same cavities; the claim quotes the hybrid's measured numbers
     control = numbers["control"]
     assert {"hybrid", "rl", "esc", "random_search", "hill_climb", "ga"} <= set(control) and control["num_cavities"] == 2
@@ -164,6 +174,27 @@ def test_without_a_bank_the_rows_about_other_K_say_they_are_not_backed_by_the_zo
         assert row.laserrl == NOT_IN_ZOO and row.paper
     with pytest.raises(FigureSkipped, match="not backed by the zoo"):
         fig6_generalisation(ctx, Path("unused.png"))
+
+
+def test_one_model_over_K_backs_the_one_model_row_and_not_the_banks():
+    from types import SimpleNamespace
+
+    from laserrl.evaluate import as_generalisation
+    from laserrl.report.claims import _K_bank, _K_single
+    from laserrl.report.context import NOT_IN_ZOO
+
+    by_K = {"-0.2": {"success_rate": 0.5, "mean_final_reward": 0.1}, "0.1": {"success_rate": 1.0, "mean_final_reward": 0.2}}
+    one = {"success_rate": 0.75, "mean_final_reward": 0.15, "mean_steps_to_lock": 9.0, "by_K": by_K, "stage": "miso"}
+    g = as_generalisation(one, "zoo:m")
+    assert g["K"] == [-0.2, 0.1] and g["rules"]["single"]["by_K"] == by_K and g["grid_success"] == {"single": 0.5}
+    assert as_generalisation(g) == g  # a bank evaluation passes as it is
+    with pytest.raises(ConfigError, match="not an evaluation over K"):
+        as_generalisation({"success_rate": 1.0})
+    ctx = SimpleNamespace(bank=[], cfg={"results": {"generalisation": "G/eval.json"}, "generalisation": {"steps": None}},
+                          has_generalisation=True, generalisation=g, commands={}, models={},
+                          command_for=lambda path: f"laserrl-eval ... ({path})")
+    assert "K in" in _K_single(ctx).laserrl and "1 / 2 grid points" in _K_single(ctx).laserrl
+    assert _K_bank(ctx).laserrl == NOT_IN_ZOO
 
 
 def test_bank_entries_keep_ensembles_and_bank_paths_flattens_them():

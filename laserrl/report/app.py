@@ -1,8 +1,9 @@
 """``laserrl-report``: regenerate the paper's figures and docs/reproduction.md (laserrl/conf/report.yaml).
 
-    laserrl-report      # the zoo's models (zoo:siso, zoo:duo, zoo:miso)
+    laserrl-report      # the zoo's models (laserrl/conf/report.yaml)
     laserrl-report report.checkpoints.siso=RUN report.checkpoints.duo=CURR/02-duo \
-        report.checkpoints.miso=CURR/03-miso 'report.checkpoints.bank=[K0,K0.2,K0.4]' \
+        report.checkpoints.miso=CURR/03-miso report.checkpoints.k_base=BASE/03-miso \
+        'report.checkpoints.bank=[K0,K0.2,K0.4]' \
         'report.results.transfer=[T/transfer.json]' report.results.generalisation=G/eval.json
     laserrl-report report.checkpoints.siso=null ...   # null: train small models on the spot first
 """
@@ -75,13 +76,13 @@ def run_report(cfg: DictConfig) -> dict:
     out_dir = Path(rcfg["out_dir"]).resolve()
     _check_inputs(rcfg)
     commands = {"report": report_command()}
-    checkpoints = {role: rcfg["checkpoints"].get(role) for role in ("siso", "duo", "miso")}
+    checkpoints = {role: rcfg["checkpoints"].get(role) for role in ("siso", "duo", "miso", "k_base")}
     bank = bank_entries(rcfg["checkpoints"].get("bank"))
     models = {role: load_model(path, role) for role, path in checkpoints.items() if path}  # fail fast
     for path in bank_paths(bank):
         read_model(path)
     trained = train_missing(rcfg["train"], run_dir, checkpoints, bank, rcfg["results"], bool(rcfg.get("train_bank")))
-    for role in ("siso", "duo", "miso"):
+    for role in ("siso", "duo", "miso", "k_base"):
         if role in trained:
             models[role] = load_model(checkpoints[role], role, trained[role]["command"])
         commands[role] = models[role].command or f"(not recorded: {models[role].path})"

@@ -276,13 +276,26 @@ def _K_single(ctx) -> Claim:
         value = f"K in {_Ks(Ks, ok)} ({sum(ok)} / {len(ok)} grid points, success >= 0.9 of the starts)"
     return Claim("K_single", "One model trained at K = 0.1 controls the laser at other K",
                  "K from -0.2 to 0.4 except a few", value, ["generalisation"],
-                 f"Grid K = {min(g['K']):g} .. {max(g['K']):g} ({len(g['K'])} values), the siso protocol's starts. "
+                 f"Grid K = {min(g['K']):g} .. {max(g['K']):g} ({len(g['K'])} values), {_protocol_text(ctx)}. "
                  + _far_locks(g))
+
+
+def _protocol_text(ctx) -> str:
+    """The protocol of the one model over K, in words."""
+    m = ctx.models.get("k_base")
+    if m is None:
+        return "the protocol of the evaluation's stage"
+    p, steps = m.stage_cfg.get("protocol") or {}, ctx.cfg["generalisation"].get("steps")
+    what = (f"{p.get('repeats')} noise draws from ({', '.join(f'{a:g}' for a in m.base_deg)}) deg"
+            if m.stage_cfg.get("init_fields") == "noise" else f"starts alpha1 {p.get('starts_deg')} deg")
+    rule = (f"reach r >= {p.get('success_r')} and hold r >= {p['hold_r']}" if p.get("hold_r") is not None
+            else f"final r >= {p.get('success_r')}")
+    return f"the {len(m.stage_cfg['controlled'])}-controller model's protocol: {what}, {steps or p.get('steps')} greedy steps, {rule}"
 
 
 @claim("K_bank")
 def _K_bank(ctx) -> Claim:
-    if not ctx.has_generalisation:
+    if not ctx.has_generalisation or "nearest" not in ctx.generalisation["rules"]:
         return _not_in_zoo("K_bank", "A bank of fine-tuned models covers the whole K range",
                            "all K in -0.2 .. 0.4 (4 models, K = -0.2, 0, 0.2, 0.4)")
     g = ctx.generalisation

@@ -22,13 +22,13 @@ from laserrl.config import ConfigError
 from laserrl.envs.factory import make_params, make_task
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.paths import CONF_DIR
-from laserrl.evaluate import _stage_base_angles, evaluate_bank, evaluate_policy, load_agent
+from laserrl.evaluate import _stage_base_angles, as_generalisation, evaluate_bank, evaluate_policy, load_agent, write_eval
 
-#: the angles each model of the report controls
-ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES)}
-NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K ships with laserrl yet (the paper ran "
-              "these experiments with four controllers); give report.checkpoints.bank and report.results.*, "
-              "or see docs/experiments.md for the single-input variant")
+#: the angles each model of the report controls (None: any; k_base, the model the claims about
+#: other K start from, is the four-controller model at K = 0.1, or zoo:siso for the single-input variant)
+ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES), "k_base": None}
+NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K ships with laserrl yet; give "
+              "report.checkpoints.bank and report.results.*, or see docs/experiments.md")
 
 APPS = {"train": "laserrl-train", "evaluate": "laserrl-eval", "app": "laserrl-report"}
 
@@ -131,7 +131,7 @@ def load_model(path: str, role: str, command: str | None = None) -> Model:
     run's ``.hydra`` record."""
     state = read_model(path)
     controlled = tuple(state["config"]["stage"]["controlled"])
-    if controlled != ROLES[role]:
+    if ROLES[role] is not None and controlled != ROLES[role]:
         raise ConfigError(f"report.checkpoints.{role}: {path} controls {list(controlled)}; the {role} figures need a "
                           f"model controlling {list(ROLES[role])}")
     card = state["meta"].get("card") or {}
@@ -344,25 +344,39 @@ class ReportContext:
     # ---------------------------------------------------------------- fig. 6 and training numbers
     @property
     def has_generalisation(self) -> bool:
-        return bool(self.cfg["results"].get("generalisation") or self.bank)
+        return bool(self.cfg["results"].get("generalisation") or self.bank or "k_base" in self.models)
 
     @cached_property
     def generalisation(self) -> dict:
-        """A bank evaluation's eval.json: the given one, or evaluated here (bank + the siso model)."""
+        """Success over the K grid in ``evaluate_bank``'s shape: the given eval.json (a bank's, or
+        one model's over K), or evaluated here: the bank with the k_base model as ``single``,
+        or the k_base model alone. ``generalisation.steps`` null: the k_base model's protocol."""
         given = self.cfg["results"].get("generalisation")
         if given:
-            return read_json(given, "report.results.generalisation")
+            try:
+                return as_generalisation(read_json(given, "report.results.generalisation"))
+            except ConfigError as err:
+                raise ConfigError(f"report.results.generalisation: {given}: {err}") from None
         gc = self.cfg["generalisation"]
-        if not self.bank:
-            raise ConfigError("report: fig. 6 needs report.checkpoints.bank or report.results.generalisation")
-        eval_cfg = {"K": [float(k) for k in gc["K"]], "steps": int(gc["steps"]), "compile": self.compile, "plots": False}
-        return evaluate_bank(self.bank, eval_cfg, self.run_dir / "generalisation", single=self.models["siso"].path)
+        eval_cfg = {"K": [float(k) for k in gc["K"]], "compile": self.compile, "plots": False}
+        if gc.get("steps") is not None:
+            eval_cfg["steps"] = int(gc["steps"])
+        out = self.run_dir / "generalisation"
+        single = self.models.get("k_base")
+        if self.bank:
+            return evaluate_bank(self.bank, eval_cfg, out, single=single and single.path)
+        if single is None:
+            raise ConfigError("report: fig. 6 needs report.checkpoints.k_base, report.checkpoints.bank or "
+                              "report.results.generalisation")
+        result = as_generalisation(self.rollout(single, **eval_cfg), single.path)
+        write_eval(result, out, plots=False)
+        return result
 
     # ---------------------------------------------------------------- fig. 7: holding the lock
     @cached_property
     def control(self) -> dict:
         """A laserrl-control control.json: the given one (``report.results.control``), or every
-        controller run here on the siso model under ``report.control`` (a small budget)."""
+        controller run here on the k_base model under ``report.control`` (a small budget)."""
         given = self.cfg["results"].get("control")
         if given:
             out = read_json(given, "report.results.control")
@@ -371,7 +385,9 @@ class ReportContext:
             from laserrl.control.app import run_control
             from laserrl.report.spot import compose_train_config
 
-            overrides = [f"checkpoint={self.models['siso'].path}", f"seed={self.seed}", "progress=false",
+            if "k_base" not in self.models:
+                raise ConfigError("report: fig. 7 needs report.checkpoints.k_base or report.results.control")
+            overrides = [f"checkpoint={self.models['k_base'].path}", f"seed={self.seed}", "progress=false",
                          "plots=false", f"compile={self.compile}", *self.cfg["control"]]
             cfg = compose_train_config(overrides, config_name="control")
             run_dir = self.run_dir / "control"

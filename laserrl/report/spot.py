@@ -3,8 +3,8 @@
 Each model is ``laserrl.train.train`` (the bank: ``laserrl.experiments.run_transfer``) on a
 training config composed from laserrl/conf exactly as ``laserrl-train OVERRIDES`` would compose it,
 with ``report.train.common`` + ``report.train.<model>`` as the overrides. The siso model is
-trained from scratch, duo from siso, miso from duo (the curriculum), the bank by fine-tuning
-siso at each K of ``transfer.Ks``.
+trained from scratch, duo from siso, miso and k_base (its four controllers at K = 0.1) from duo
+(the curriculum), the bank by fine-tuning k_base at each K of ``transfer.Ks``.
 """
 from __future__ import annotations
 
@@ -97,8 +97,11 @@ def train_missing(train_cfg: dict, run_dir: Path, checkpoints: dict, bank: list[
     if not checkpoints.get("miso"):
         sub, _ = run("miso", {"init_from": checkpoints["duo"]}, train)
         checkpoints["miso"] = str(sub / "model")
+    if not checkpoints.get("k_base"):
+        sub, _ = run("k_base", {"init_from": checkpoints["duo"]}, train)
+        checkpoints["k_base"] = str(sub / "model")
     if not bank and train_bank:
-        sub, cfg = run("bank", {"transfer": {"base": checkpoints["siso"]}}, run_transfer)
+        sub, cfg = run("bank", {"transfer": {"base": checkpoints["k_base"]}}, run_transfer)
         bank.extend(str(sub / f"K{float(K):+.2f}-finetune" / "model") for K in cfg.transfer.Ks)
         if not results.get("transfer"):
             results["transfer"] = [str(sub / "transfer.json")]
