@@ -33,7 +33,7 @@ from laserrl.envs.laser_env import ANGLE_NAMES
 #: ``controller=all`` runs these, in this order
 ALL = ("random_search", "hill_climb", "ga", "esc", "rl", "hybrid")
 NEEDS_CHECKPOINT = ("rl", "hybrid")
-METRICS = ("frac_locked", "mean_r", "first_lock_step", "recovery_steps", "round_trips")
+METRICS = ("frac_locked", "mean_r", "first_lock_step", "locked_after_first_lock", "recovery_steps", "round_trips")
 
 
 def _params(cls, cfg: Mapping[str, Any], where: str):
@@ -239,12 +239,13 @@ def _row(name: str, s: dict) -> str:
 
 def comparison_table(out: dict) -> str:
     """Markdown table of the summaries (mean ± standard deviation over cavities)."""
-    lines = ["| controller | time locked (r >= %g) | mean r | steps to first lock (locked) | recovery after a jump, steps (recovered) | round trips |"
-             % out["locked_r"], "|---|---:|---:|---:|---:|---:|"]
+    lines = ["| controller | time locked (r >= %g) | after the first lock | mean r | steps to first lock (locked) | "
+             "recovery after a jump, steps (recovered) | round trips |" % out["locked_r"], "|---|---:|---:|---:|---:|---:|---:|"]
     for n in out["controllers"]:
         s = out["results"][n]["summary"]
         rec = "-" if s["recovered"] is None else f"{_fmt(s['recovery_steps'], 1)} ({100 * s['recovered']:.0f} %)"
-        lines.append(f"| {n} | {_fmt(s['frac_locked'], pct=True)} | {_fmt(s['mean_r'])} | "
+        lines.append(f"| {n} | {_fmt(s['frac_locked'], pct=True)} | {_fmt(s['locked_after_first_lock'], pct=True)} | "
+                     f"{_fmt(s['mean_r'])} | "
                      f"{_fmt(s['first_lock_step'], 1)} ({100 * s['locked_ever']:.0f} %) | {rec} | "
                      f"{s['round_trips']['mean']:.0f} |")
     return "\n".join(lines)

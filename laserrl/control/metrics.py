@@ -6,6 +6,8 @@ With r(t) the reward after agent step t (t = 0 .. T-1) and "locked" meaning r >=
 * ``mean_r``: mean of r over the T steps;
 * ``first_lock_step``: steps until the first lock, t + 1 for the first t that starts a run of
   ``hold_steps`` consecutive locked steps (None if there is none);
+* ``locked_after_first_lock``: fraction of the steps from the first lock to the end that are
+  locked (None if there is no lock): how well a controller holds what it found;
 * ``recovery_steps``: for every jump of K at step t_j, s - t_j for the first s >= t_j that
   starts a run of ``hold_steps`` locked steps before the next jump (or the end); 0 when the
   lock survives the jump, None when the cavity does not lock again in time;
@@ -46,6 +48,7 @@ def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int]
         "frac_locked": locked.mean(1).tolist(),
         "mean_r": r.mean(1).tolist(),
         "first_lock_step": [None if f is None else f + 1 for f in first],
+        "locked_after_first_lock": [None if f is None else float(locked[b, f:].mean()) for b, f in enumerate(first)],
         "recovery_steps": [[recovery[j][b] for j in range(len(jump_times))] for b in range(B)],
         "round_trips": round_trips.sum(1).astype(int).tolist(),
     }
@@ -63,7 +66,8 @@ def spread(values: Sequence[float | None]) -> dict:
 def summarise(cav: dict, num_jumps: int) -> dict:
     """Average over cavities (with spread) of ``per_cavity``'s metrics."""
     B = len(cav["mean_r"])
-    out = {k: spread(cav[k]) for k in ("frac_locked", "mean_r", "first_lock_step", "round_trips")}
+    out = {k: spread(cav[k]) for k in ("frac_locked", "mean_r", "first_lock_step", "locked_after_first_lock",
+                                       "round_trips")}
     out["locked_ever"] = sum(v is not None for v in cav["first_lock_step"]) / B
     pooled = [rec[j] for rec in cav["recovery_steps"] for j in range(num_jumps)]
     out["recovery_steps"] = spread(pooled)

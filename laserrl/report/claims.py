@@ -402,7 +402,9 @@ def _hybrid(ctx) -> Claim:
     c = ctx.control
     s = {n: r["summary"] for n, r in c["results"].items()}
     def cell(n):
-        return f"{n}: locked {s[n]['frac_locked']['mean']:.2f}, mean r {s[n]['mean_r']['mean']:.3f}"
+        after = (s[n].get("locked_after_first_lock") or {}).get("mean")
+        return (f"{n}: locked {s[n]['frac_locked']['mean']:.2f}" + (f" ({after:.2f} after its first lock)" if after is not None
+                else "") + f", mean r {s[n]['mean_r']['mean']:.3f}")
     names = [n for n in ("hybrid", "rl", "esc") if n in s]
     controlled = c.get("controlled") or ["alpha1"]
     better = all(s["hybrid"]["frac_locked"]["mean"] >= s[n]["frac_locked"]["mean"]

@@ -398,7 +398,8 @@ class ReportContext:
         if "hybrid" not in results:
             raise ConfigError("report: fig. 7 needs a control run with the hybrid controller (controller=all or hybrid)")
         self.numbers["control"] = {"scenario": out["scenario"].get("name"), "num_cavities": out["num_cavities"],
-                                   **{n: {k: r["summary"][k]["mean"] for k in ("frac_locked", "mean_r")}
+                                   **{n: {k: (r["summary"].get(k) or {}).get("mean")
+                                          for k in ("frac_locked", "locked_after_first_lock", "mean_r")}
                                       for n, r in results.items()}}
         return out
 
