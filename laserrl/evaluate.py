@@ -24,7 +24,7 @@ import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tensordict import TensorDict
 
-from laserrl.agents.dqn import make_actor, make_qnet
+from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
@@ -44,8 +44,7 @@ def load_qnet(state: Mapping[str, Any], action_spec):
         )
     qnets = []
     for weights in ensemble_members(state):  # one, or the members of an ensemble
-        qnet = make_qnet(n_env, int(cfg["env"].get("physics", {}).get("n", 256)), net["channels"],
-                         net["kernel_size"], net["pool"], net["hidden"], net["negative_slope"])
+        qnet = build_qnet(n_env, cfg["env"], net)
         try:
             qnet.load_state_dict(weights)
         except RuntimeError as err:

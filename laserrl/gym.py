@@ -21,7 +21,9 @@ then each step runs several times faster (worth it for long runs).
 
 Observation: ``Dict(fields=Box(-inf, inf, (4, n)), angles=Box(-pi/2, pi/2, (4,)))``, float32:
 the fields (Re u, Im u, Re v, Im v) on the n = 256 time samples and the four plate angles
-(alpha1, alpha2, alpha3, alpha_p) in radians. The birefringence K is not observed.
+(alpha1, alpha2, alpha3, alpha_p) in radians; with ``observation="measured"`` the instruments'
+readings ``spectrum``, ``energy`` and ``autocorrelation`` (``laserrl.physics.instruments``)
+instead of the fields. The birefringence K is not observed.
 Action: ``Discrete(3**m)`` for m controlled angles (``laserrl.envs.actions``: digit j of the
 action in base 3 turns angle j down, holds it, or turns it up by its step).
 Reward: the training reward (r - reward_center) / reward_scale of ``laserrl-train``;
@@ -32,7 +34,8 @@ Keyword arguments of ``gymnasium.make`` (and ``make_vec``) change the settings:
 
 - any key of the ``env`` config: ``max_round_trips``, ``min_round_trips``, ``tol``,
   ``dtype`` ("complex64" or "complex128"), ``compile``, ``reward_center``, ``reward_scale``,
-  ``physics`` (a dict of ``CavityParams`` fields, e.g. ``physics={"n": 128}``);
+  ``physics`` (a dict of ``CavityParams`` fields, e.g. ``physics={"n": 128}``), ``observation``
+  ("fields" or "measured"), ``instruments`` (a dict of their settings);
 - any key of the task: ``K`` (a number or a [low, high] range sampled at reset),
   ``init_angles_deg`` (a dict of angles, each a number or a [low, high] range; the angles
   it leaves out keep the task's),
@@ -73,7 +76,7 @@ ENV_IDS = {
     for label, stage in (("SISO", "siso"), ("Duo", "duo"), ("MISO", "miso"))
     for suffix, experiment in (("", None), ("-PaperExact", "paper_exact"))
 }
-_MAPPING_KEYS = ("physics", "init_angles_deg")  # merged into the config's mapping, not replacing it
+_MAPPING_KEYS = ("physics", "init_angles_deg", "instruments")  # merged into the config's mapping, not replacing it
 _OWN_KEYS = ("device", "threads")
 
 
@@ -142,7 +145,8 @@ class _Cavities:
         # torch and TorchRL load here, not at import: ``import laserrl`` registers the ids, and
         # should stay light and keep TorchRL out of programs that use only the physics
         from laserrl.config import check_device
-        from laserrl.envs.factory import make_env
+        from laserrl.envs.factory import history_length, make_env
+        from laserrl.envs.laser_env import policy_keys
 
         env_cfg, stage_cfg = _configs_with(stage, experiment, overrides)
         device = overrides.get("device", "cpu")
@@ -154,14 +158,18 @@ class _Cavities:
             self.env = make_env(env_cfg, stage_cfg, num_envs, seed=None, device=device, threads=threads)
         except ValueError as err:  # messages start with the config key: name it as the keyword is spelt
             raise ConfigError(re.sub(r"^(env|stage)\.", "", str(err))) from None
+        if history_length(env_cfg) != 1:  # reset below steps the base env, past a history transform
+            raise ConfigError("history: the Gymnasium envs give one observation per step; stack them with "
+                              "gymnasium.wrappers.FrameStackObservation")
         base = self.env.base_env
         self.num_envs = base.batch_size[0]
         self.device = base.device
-        n = base.params.n
+        self.keys = policy_keys(base.task)
+        spec = base.observation_spec
         self.single_observation_space = spaces.Dict({
-            "fields": spaces.Box(-np.inf, np.inf, shape=(4, n), dtype=np.float32),
-            "angles": spaces.Box(-math.pi / 2, math.pi / 2, shape=(4,), dtype=np.float32),
-        })
+            key: (spaces.Box(-math.pi / 2, math.pi / 2, shape=(4,), dtype=np.float32) if key == "angles" else
+                  spaces.Box(-np.inf, np.inf, shape=tuple(spec[key].shape[1:]), dtype=np.float32))
+            for key in self.keys})
         self.single_action_space = spaces.Discrete(base.task.num_actions)
 
     def reset(self, seed: int | None = None, options: Mapping | None = None, mask: np.ndarray | None = None):
@@ -209,9 +217,8 @@ class _Cavities:
         truncated = out["truncated"].reshape(-1).cpu().numpy().copy()
         return self._observation(out), reward, truncated, self._info(out)
 
-    @staticmethod
-    def _observation(td) -> dict[str, np.ndarray]:
-        return {key: td[key].cpu().numpy().copy() for key in ("fields", "angles")}
+    def _observation(self, td) -> dict[str, np.ndarray]:
+        return {key: td[key].cpu().numpy().copy() for key in self.keys}
 
     @staticmethod
     def _info(td) -> dict[str, np.ndarray]:

@@ -116,7 +116,9 @@ def model_metadata(config: Mapping[str, Any], num_actions: int, **extra) -> dict
         "actions": {"controlled": list(stage["controlled"]), "steps_deg": list(stage["steps_deg"]),
                     "encoding": ACTION_ENCODING},
         "K": stage.get("K"), "physics": dict(config["env"].get("physics", {})),
-        "observation": "fields",
+        # what the network reads and remembers (the env config has the details: instruments, history)
+        "observation": config["env"].get("observation", "fields"),
+        "memory": {"history": int(config["env"].get("history", 1))},
         "config": dict(config), **extra,
     }
 

@@ -123,7 +123,7 @@ def check_train_config(cfg: DictConfig):
 def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
     """The double DQN of the ``agent`` and ``optim`` config for an env with ``action_spec``."""
     decay, decay_updates = optim_lr_decay(cfg)
-    return DQNAgent.build(action_spec, int(cfg.env.physics.n), network=cfg.agent.network,
+    return DQNAgent.build(action_spec, OmegaConf.to_container(cfg.env, resolve=True), network=cfg.agent.network,
                           exploration=dict(cfg.agent.exploration), gamma=cfg.agent.gamma,
                           loss_function=cfg.agent.loss_function, target=dict(cfg.agent.target), lr=cfg.optim.lr,
                           weight_decay=cfg.optim.weight_decay, lr_decay=decay, lr_decay_updates=decay_updates,

@@ -24,10 +24,12 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.modules import QValueModule
 
-from laserrl.agents.qnet import FieldQNet
-from laserrl.agents.dqn import OBS_KEYS
+from laserrl.agents.qnet import FieldQNet, MeasuredQNet
 
 __all__ = ["MaxQBank", "MeanQ", "TrialBank", "TrialRule", "make_bank_actor", "make_trial_actor"]
+
+#: a Q-network: one model's, or an ensemble's mean (``MeanQ``)
+QNet = "FieldQNet | MeasuredQNet | MeanQ"
 
 
 def _common_action_count(qnets: list[nn.Module], group: str, of_group: str) -> int:
@@ -47,10 +49,20 @@ class MeanQ(nn.Module):
     def __init__(self, qnets: list[nn.Module]):
         super().__init__()
         self.num_actions = _common_action_count(qnets, "an ensemble", "an ensemble")
+        self.in_keys = _in_keys(qnets)
+        self.observation = qnets[0].observation
         self.qnets = nn.ModuleList(qnets)
 
-    def forward(self, fields: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
-        return torch.stack([net(fields, angles) for net in self.qnets]).mean(0)
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        return torch.stack([net(*obs) for net in self.qnets]).mean(0)
+
+
+def _in_keys(qnets) -> tuple[str, ...]:
+    """The observation keys every network of ``qnets`` reads (they must read the same)."""
+    keys = {tuple(net.in_keys) for net in qnets}
+    if len(keys) != 1:
+        raise ValueError(f"the models read different observations {sorted(keys)}: combine models of one observation")
+    return keys.pop()
 
 
 def _q_of(q: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
@@ -61,20 +73,20 @@ def _q_of(q: torch.Tensor, model: torch.Tensor) -> torch.Tensor:
 class MaxQBank(nn.Module):
     """Q-values of the model with the highest max Q, per cavity; and that model's index."""
 
-    def __init__(self, qnets: list[FieldQNet | MeanQ]):
+    def __init__(self, qnets: list[QNet]):
         super().__init__()
         _common_action_count(qnets, "a model bank", "a bank")
         self.qnets = nn.ModuleList(qnets)
 
-    def forward(self, fields: torch.Tensor, angles: torch.Tensor):
-        q = torch.stack([net(fields, angles) for net in self.qnets])  # (M, *batch, A)
+    def forward(self, *obs: torch.Tensor):
+        q = torch.stack([net(*obs) for net in self.qnets])  # (M, *batch, A)
         model = q.max(-1).values.argmax(0)  # (*batch,)
         return _q_of(q, model), model
 
 
-def make_bank_actor(qnets: list[FieldQNet | MeanQ], action_spec) -> TensorDictSequential:
+def make_bank_actor(qnets: list[QNet], action_spec) -> TensorDictSequential:
     """Greedy policy of a ``MaxQBank``: writes ``action``, ``action_value`` and ``model``."""
-    bank = TensorDictModule(MaxQBank(qnets), in_keys=OBS_KEYS, out_keys=["action_value", "model"])
+    bank = TensorDictModule(MaxQBank(qnets), in_keys=list(_in_keys(qnets)), out_keys=["action_value", "model"])
     return TensorDictSequential(bank, QValueModule(spec=action_spec))
 
 
@@ -104,7 +116,7 @@ class TrialBank(nn.Module):
     model on trial, the steps it has had, r when its trial began) lives in the module, so
     one ``TrialBank`` serves one batch of cavities stepping together."""
 
-    def __init__(self, qnets: list[FieldQNet | MeanQ], rule: TrialRule = TrialRule()):
+    def __init__(self, qnets: list[QNet], rule: TrialRule = TrialRule()):
         super().__init__()
         _common_action_count(qnets, "a model bank", "a bank")
         self.qnets = nn.ModuleList(qnets)
@@ -128,13 +140,14 @@ class TrialBank(nn.Module):
         self.r_start = torch.where(restart, r, self.r_start)
         return self.current
 
-    def forward(self, fields: torch.Tensor, angles: torch.Tensor, r: torch.Tensor, step_count: torch.Tensor):
+    def forward(self, *obs_r_step: torch.Tensor):
+        *obs, r, step_count = obs_r_step
         model = self._choose(r.reshape(r.shape[:-1]).to(torch.float64), step_count.reshape(step_count.shape[:-1]))
-        return _q_of(torch.stack([net(fields, angles) for net in self.qnets]), model), model
+        return _q_of(torch.stack([net(*obs) for net in self.qnets]), model), model
 
 
-def make_trial_actor(qnets: list[FieldQNet | MeanQ], action_spec, rule: TrialRule = TrialRule()) -> TensorDictSequential:
+def make_trial_actor(qnets: list[QNet], action_spec, rule: TrialRule = TrialRule()) -> TensorDictSequential:
     """Greedy policy of a ``TrialBank``: writes ``action``, ``action_value`` and ``model``."""
-    bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*OBS_KEYS, "r", "step_count"],
+    bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*_in_keys(qnets), "r", "step_count"],
                             out_keys=["action_value", "model"])
     return TensorDictSequential(bank, QValueModule(spec=action_spec))

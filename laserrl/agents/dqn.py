@@ -21,10 +21,8 @@ from torchrl.envs.transforms import MultiStepTransform
 from torchrl.modules import EGreedyModule, QValueActor
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from laserrl.agents.qnet import FieldQNet
+from laserrl.agents.qnet import FieldQNet, MeasuredQNet
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
-
-OBS_KEYS = ["fields", "angles"]
 
 
 def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, hidden, negative_slope: float) -> FieldQNet:
@@ -41,10 +39,40 @@ def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, h
         raise ConfigError(f"agent.network: {err}") from None
 
 
-def make_actor(qnet: FieldQNet, action_spec) -> QValueActor:
-    """Greedy Q-actor; ``action_spec`` is the env's unbatched action spec."""
-    module = TensorDictModule(qnet, in_keys=OBS_KEYS, out_keys=["action_value"])
-    return QValueActor(module, in_keys=OBS_KEYS, spec=action_spec)
+def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float) -> MeasuredQNet:
+    """The Q-network for ``env.observation=measured``: its inputs from ``env.instruments`` and
+    ``env.history``, its layers from ``agent.network.hidden`` and ``negative_slope``."""
+    from laserrl.envs.factory import history_length
+
+    hidden = check_numbers(hidden, "agent.network.hidden", low=1, integer=True)
+    negative_slope = check_number(negative_slope, "agent.network.negative_slope", low=0)
+    ins = dict(env_cfg.get("instruments") or {})
+    try:
+        return MeasuredQNet(num_actions, bins=int(ins.get("spectrum_bins", 64)), points=int(ins.get("autocorrelation_points", 64)),
+                            history=history_length(env_cfg), hidden=tuple(hidden), negative_slope=negative_slope)
+    except ValueError as err:
+        raise ConfigError(f"env.instruments: {err}") from None
+
+
+def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet:
+    """The Q-network for an env of config ``env_cfg`` (its ``observation``, grid, instruments and
+    history) with ``num_actions`` joint actions and the ``agent.network`` config ``network``."""
+    observation = env_cfg.get("observation", "fields")
+    if observation == "measured":
+        return make_measured_qnet(num_actions, env_cfg, network["hidden"], network["negative_slope"])
+    from laserrl.envs.factory import history_length
+
+    if history_length(env_cfg) != 1:
+        raise ConfigError("env.history > 1 needs env.observation=measured (the fields network sees one state)")
+    return make_qnet(num_actions, int((env_cfg.get("physics") or {}).get("n", 256)), network["channels"],
+                     network["kernel_size"], network["pool"], network["hidden"], network["negative_slope"])
+
+
+def make_actor(qnet: FieldQNet | MeasuredQNet, action_spec) -> QValueActor:
+    """Greedy Q-actor reading the network's ``in_keys``; ``action_spec`` is the env's unbatched action spec."""
+    keys = list(qnet.in_keys)
+    module = TensorDictModule(qnet, in_keys=keys, out_keys=["action_value"])
+    return QValueActor(module, in_keys=keys, spec=action_spec)
 
 
 @dataclass
@@ -142,7 +170,7 @@ class DQNAgent:
     al. 2017, "Averaged-DQN", average Q-estimates for the same reason).
     """
 
-    qnet: FieldQNet
+    qnet: FieldQNet | MeasuredQNet
     actor: QValueActor
     policy: TensorDictSequential
     egreedy: EGreedyModule
@@ -157,13 +185,12 @@ class DQNAgent:
     greedy: QValueActor
 
     @classmethod
-    def build(cls, action_spec, n: int, *, network, exploration, gamma: float, loss_function: str, target,
+    def build(cls, action_spec, env_cfg, *, network, exploration, gamma: float, loss_function: str, target,
               lr: float, weight_decay: float, lr_decay: float, lr_decay_updates: int, max_grad_norm: float,
               prioritized: bool, average_decay: float | None = None) -> "DQNAgent":
-        """The agent for an env with ``action_spec`` (unbatched) and ``n`` field samples; the
-        keyword groups are the ``agent`` and ``optim`` config entries."""
-        qnet = make_qnet(int(action_spec.n), n, network["channels"], network["kernel_size"], network["pool"],
-                         network["hidden"], network["negative_slope"])
+        """The agent for an env with ``action_spec`` (unbatched) and the ``env`` config ``env_cfg``
+        (what it observes); the keyword groups are the ``agent`` and ``optim`` config entries."""
+        qnet = build_qnet(int(action_spec.n), env_cfg, network)
         lr = check_number(lr, "optim.lr", low=0, low_open=True)
         weight_decay = check_number(weight_decay, "optim.weight_decay", low=0)
         lr_decay = check_number(lr_decay, "optim.lr_decay", low=0, high=1, low_open=True)

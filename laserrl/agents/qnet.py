@@ -1,6 +1,9 @@
-"""Q-network of the paper: convolutions and max-pooling over the intra-cavity
-fields, the waveplate angles joined after the convolutions, then fully connected
-layers with leaky ReLU, giving one Q-value per joint action."""
+"""Q-networks: the paper's (convolutions and max-pooling over the intra-cavity fields, the
+waveplate angles joined after the convolutions, then fully connected layers with leaky ReLU,
+giving one Q-value per joint action), and one for what instruments measure.
+
+Each network names the observation keys it reads (``in_keys``) and its ``observation``
+(``laserrl.envs.laser_env.LaserTask.observation``)."""
 from __future__ import annotations
 
 from typing import Sequence
@@ -23,6 +26,9 @@ class FieldQNet(nn.Module):
     The angles enter as (sin 2a, cos 2a): the optics have period pi in every angle,
     so the encoding is continuous across the wrap at +-90 deg.
     """
+
+    in_keys = ("fields", "angles")
+    observation = "fields"
 
     def __init__(self, num_actions: int, n: int = 256, channels: Sequence[int] = (16, 32, 32), kernel_size: int = 5,
                  pool: int = 2, hidden: Sequence[int] = (128, 64), negative_slope: float = 0.01):
@@ -54,7 +60,59 @@ class FieldQNet(nn.Module):
     def forward(self, fields: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
         lead = fields.shape[:-2]
         x = self.features(fields.reshape(-1, 4, fields.shape[-1])).flatten(1)
-        a = angles.reshape(-1, 4)
-        enc = torch.cat([torch.sin(2 * a), torch.cos(2 * a)], dim=-1)
-        q = self.head(torch.cat([x, enc], dim=-1))
+        q = self.head(torch.cat([x, angle_encoding(angles.reshape(-1, 4))], dim=-1))
         return q.reshape(*lead, self.num_actions)
+
+
+def angle_encoding(a: torch.Tensor) -> torch.Tensor:
+    """(sin 2a, cos 2a) of angles in radians, last axis doubled: continuous across the wrap at +-90 deg."""
+    return torch.cat([torch.sin(2 * a), torch.cos(2 * a)], dim=-1)
+
+
+class MeasuredQNet(nn.Module):
+    """Q(s, .) for s = what instruments read (``laserrl.physics.instruments``), the last
+    ``history`` observations of each key stacked along its last axis (oldest first):
+    ``spectrum`` (..., history * bins) OSA powers, ``energy`` (..., history) the pulse energy W,
+    ``autocorrelation`` (..., history * points) if ``points``, ``angles`` (..., history * 4).
+
+    Each observation enters as log10 of the spectrum's shape S_j / sum S (floored at 1e-9),
+    log10 W, the autocorrelation as read and the angles as (sin 2a, cos 2a); the stacked
+    observations, joined, pass fully connected layers with leaky ReLU (``hidden``).
+    """
+
+    observation = "measured"
+
+    def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1,
+                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+        super().__init__()
+        if num_actions < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
+        for name, value, low in (("bins", bins, 1), ("points", points, 0), ("history", history, 1)):
+            if int(value) != value or value < low:
+                raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+        self.num_actions, self.bins, self.points, self.history = int(num_actions), int(bins), int(points), int(history)
+        self.in_keys = ("spectrum", "energy", *(("autocorrelation",) if points else ()), "angles")
+        width = self.history * (self.bins + 1 + self.points + 8)
+        head: list[nn.Module] = []
+        for h in hidden:
+            head += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
+            width = int(h)
+        head.append(nn.Linear(width, num_actions))
+        self.head = nn.Sequential(*head)
+
+    def features(self, spectrum, energy, *rest) -> torch.Tensor:
+        """The joined, scaled observations (..., history * (bins + 1 + points + 8))."""
+        angles = rest[-1]
+        lead, H = angles.shape[:-1], self.history
+        s = spectrum.reshape(*lead, H, self.bins)
+        shape = torch.log10(s.clamp_min(0) / s.clamp_min(0).sum(-1, keepdim=True).clamp_min(1e-30) + 1e-9)
+        parts = [shape, torch.log10(energy.reshape(*lead, H, 1).clamp_min(1e-9))]
+        if self.points:
+            parts.append(rest[0].reshape(*lead, H, self.points))
+        parts.append(angle_encoding(angles.reshape(*lead, H, 4)))
+        return torch.cat(parts, dim=-1).reshape(*lead, -1)
+
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        if len(obs) != len(self.in_keys):
+            raise ValueError(f"MeasuredQNet reads {list(self.in_keys)}, got {len(obs)} tensors")
+        return self.head(self.features(*obs))

@@ -46,7 +46,8 @@ class DeepRL:
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-            action = self.policy(obs.select("fields", "angles").clone())["action"]
+            keys = getattr(self.policy, "in_keys", None)  # a TensorDict module reads its own keys
+            action = self.policy((obs if keys is None else obs.select(*keys, strict=False)).clone())["action"]
         command = angles_deg.clone().to(torch.float64)
         command[:, self.idx] += action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
         return command

@@ -5,10 +5,14 @@ The env only adapts the pure agent step ``laserrl.envs.step.step``: it keeps the
 initial states at reset (all cavities, or those in the ``_reset`` mask) and reports
 r = E / M4 of the state each step ends in.
 
-Observation: ``fields`` (B, 4, n) float32 = (Re u, Im u, Re v, Im v) and ``angles``
-(B, 4) in radians (alpha1, alpha2, alpha3, alpha_p), wrapped to [-pi/2, pi/2).
-K is the latent disturbance and is not observed. Diagnostics that a policy should
-not read are put next to the observation: ``r`` (raw reward), ``round_trips``.
+Observation (``task.observation``): ``fields`` (B, 4, n) float32 = (Re u, Im u, Re v, Im v),
+or with ``"measured"`` what instruments read (``spectrum``, ``energy``, ``autocorrelation``:
+``laserrl.physics.instruments``), and ``angles`` (B, 4) in radians (alpha1, alpha2, alpha3,
+alpha_p), wrapped to [-pi/2, pi/2). K is the latent disturbance and is not observed.
+Diagnostics that a policy should not read are put next to the observation: ``r`` (the
+paper's r of the state, which evaluation reads), ``round_trips``. The reward is r (minus
+``move_cost`` when a plate turns), or with measured observations the readings' own
+``r_measured``.
 """
 from __future__ import annotations
 
@@ -23,11 +27,13 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import hold_action, num_actions
-from laserrl.envs.step import CavityState, StepNumerics, observe, step, wrap_angle
+from laserrl.envs.step import CavityState, StepNumerics, observe, observe_measured, step, wrap_angle
+from laserrl.physics.instruments import Instruments, spectrum_matrix
 from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
 
 ANGLE_NAMES = ("alpha1", "alpha2", "alpha3", "alpha_p")
+OBSERVATIONS = ("fields", "measured")
 _DTYPES = {"complex64": torch.complex64, "complex128": torch.complex128}
 #: Largest initial field amplitude (sech_amplitude, noise_scale): the cavity's states peak at
 #: |u|^2 + |v|^2 of order 1-10, and far larger fields can be compressed within a round trip
@@ -61,6 +67,14 @@ def _sequence(value, name: str) -> tuple:
     return tuple(value)
 
 
+def policy_keys(task: "LaserTask") -> tuple[str, ...]:
+    """The observation keys a policy reads for ``task``'s observation (not the diagnostics r,
+    r_measured, round_trips, step_count)."""
+    if task.observation == "fields":
+        return ("fields", "angles")
+    return ("spectrum", "energy", *(("autocorrelation",) if task.instruments.autocorrelation_points else ()), "angles")
+
+
 @dataclass
 class LaserTask:
     """What the agent controls and how episodes start. Angles in degrees.
@@ -91,6 +105,10 @@ class LaserTask:
     move_cost: float = 0.0
     dtype: str = "complex64"
     compile: bool = False
+    # what the agent observes: "fields" (u, v with their phase: the paper) or "measured" (the readings of
+    # ``instruments``, laserrl.physics.instruments; the training reward is then theirs too)
+    observation: str = "fields"
+    instruments: Instruments | Mapping | None = None  # settings of the instruments (None: their defaults)
 
     def __post_init__(self):
         self.controlled = _sequence(self.controlled, "controlled")
@@ -134,6 +152,20 @@ class LaserTask:
             raise ValueError(f"move_cost must be >= 0, got {self.move_cost!r}")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
+        if self.observation not in OBSERVATIONS:
+            raise ValueError(f"observation must be one of {OBSERVATIONS}, got {self.observation!r}")
+        if isinstance(self.instruments, Mapping):
+            try:
+                self.instruments = Instruments(**dict(self.instruments))
+            except TypeError as err:  # an unknown setting
+                known = [f.name for f in dc_fields(Instruments)]
+                raise ValueError(f"instruments: {err}; settings: {known}") from None
+            except ValueError as err:
+                raise ValueError(f"instruments.{err}") from None
+        elif self.instruments is None:
+            self.instruments = Instruments()
+        elif not isinstance(self.instruments, Instruments):
+            raise ValueError(f"instruments must map instrument settings to values, got {self.instruments!r}")
         if self.tol is None:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
         if finite_number(self.tol, "tol") < 0:
@@ -196,6 +228,13 @@ class LaserCavityEnv(EnvBase):
         self._rng = torch.Generator(device=dev)
         self._rng.manual_seed(seed if seed is not None else int(torch.empty((), dtype=torch.int64).random_()))
         self._numerics = self.task.numerics
+        self._measured = self.task.observation == "measured"
+        if self._measured:
+            try:
+                self.task.instruments.check_grid(self.params)
+            except ValueError as err:
+                raise ValueError(f"instruments.{err}") from None
+            self._osa = spectrum_matrix(self.params, self.task.instruments, dtype=self._rdtype, device=dev)
         self._pending: CavityState | None = None  # a saved state the next full reset continues (continue_from)
         self.state = CavityState(
             u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
@@ -206,8 +245,17 @@ class LaserCavityEnv(EnvBase):
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
         B, n, dev = self.batch_size, self.params.n, self.device
+        if self._measured:
+            ins = self.task.instruments
+            seen = {"spectrum": Unbounded(shape=(*B, ins.spectrum_bins), dtype=torch.float32, device=dev),
+                    "energy": Unbounded(shape=(*B, 1), dtype=torch.float32, device=dev)}
+            if ins.autocorrelation_points:
+                seen["autocorrelation"] = Unbounded(shape=(*B, ins.autocorrelation_points), dtype=torch.float32, device=dev)
+            seen["r_measured"] = Unbounded(shape=(*B, 1), dtype=torch.float32, device=dev)  # the readings' reward
+        else:
+            seen = {"fields": Unbounded(shape=(*B, 4, n), dtype=torch.float32, device=dev)}
         self.observation_spec = Composite(
-            fields=Unbounded(shape=(*B, 4, n), dtype=torch.float32, device=dev),
+            **seen,
             angles=Bounded(low=-math.pi / 2, high=math.pi / 2, shape=(*B, 4), dtype=torch.float32, device=dev),
             r=Unbounded(shape=(*B, 1), dtype=torch.float32, device=dev),
             round_trips=Unbounded(shape=(*B, 1), dtype=torch.int64, device=dev),
@@ -222,8 +270,14 @@ class LaserCavityEnv(EnvBase):
 
     # ------------------------------------------------------------------ helpers
     def _observation(self, r: torch.Tensor, round_trips: torch.Tensor) -> TensorDict:
+        """The observation of the current state; measured readings draw their noise from the env's generator."""
+        if self._measured:
+            seen, r_measured = observe_measured(self.state, self.params, self.task.instruments, self._osa, self._rng)
+            seen["r_measured"] = r_measured.to(torch.float32).unsqueeze(-1)
+        else:
+            seen = observe(self.state)
         return TensorDict(
-            **observe(self.state),
+            **seen,
             r=r.to(torch.float32).unsqueeze(-1),
             round_trips=round_trips.unsqueeze(-1),
             step_count=self.state.step_count.unsqueeze(-1).clone(),
@@ -277,7 +331,8 @@ class LaserCavityEnv(EnvBase):
         action = tensordict.get("action").reshape(self.batch_size)
         self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
         out = self._observation(measured.r, measured.round_trips)
-        reward = measured.r
+        # the training reward: r, or with measured observations the readings' r_measured
+        reward = out.get("r_measured").squeeze(-1) if self._measured else measured.r
         if self.task.move_cost:
             reward = reward - self.task.move_cost * (action != self._hold).to(reward.dtype)
         out.set("reward", reward.to(torch.float32).unsqueeze(-1))

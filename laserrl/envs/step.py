@@ -31,9 +31,10 @@ from tensordict import tensorclass
 
 from laserrl.envs.actions import action_to_deltas
 from laserrl.physics import CavityParams, NonFiniteFieldError, reward_terms, run_to_convergence
+from laserrl.physics.instruments import Instruments, measure, measured_reward
 
-__all__ = ["CavityState", "StepNumerics", "StepOutput", "apply_action", "observe", "step", "step_cavity",
-           "wrap_angle"]
+__all__ = ["CavityState", "StepNumerics", "StepOutput", "apply_action", "observe", "observe_measured", "step",
+           "step_cavity", "wrap_angle"]
 
 
 def wrap_angle(a: torch.Tensor) -> torch.Tensor:
@@ -134,6 +135,20 @@ def step(state: CavityState, action: torch.Tensor, steps_rad: torch.Tensor, cont
          params: CavityParams, numerics: StepNumerics) -> tuple[CavityState, StepOutput]:
     """One agent step of a discrete action: ``apply_action``, then ``step_cavity``."""
     return step_cavity(state, apply_action(state.angles, action, steps_rad, controlled_index), params, numerics)
+
+
+def observe_measured(state: CavityState, params: CavityParams, instruments: Instruments, matrix: torch.Tensor,
+                     generator: torch.Generator | None = None) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+    """What the agent sees with ``observation="measured"``: the instruments' readings
+    (``laserrl.physics.instruments``) ``spectrum`` (B, bins), ``energy`` (B, 1), ``autocorrelation``
+    (B, points) if there is an autocorrelator, and ``angles`` (B, 4), all float32; with the reward
+    of those readings, ``r_measured`` (B,). ``matrix``: the OSA's ``spectrum_matrix``."""
+    m = measure(state.u, state.v, params, instruments, matrix, generator)
+    obs = {"spectrum": m.spectrum.to(torch.float32), "energy": m.energy.unsqueeze(-1).to(torch.float32)}
+    if m.autocorrelation is not None:
+        obs["autocorrelation"] = m.autocorrelation.to(torch.float32)
+    obs["angles"] = state.angles.to(torch.float32)
+    return obs, measured_reward(m, instruments.reward)
 
 
 def observe(state: CavityState) -> dict[str, torch.Tensor]:

@@ -1,7 +1,9 @@
 """Transforms used around the laser env."""
 from __future__ import annotations
 
-from torchrl.envs.transforms import RewardScaling
+from typing import Sequence
+
+from torchrl.envs.transforms import CatFrames, RewardScaling
 
 
 def centred_reward(center: float = 0.1, scale: float = 0.1) -> RewardScaling:
@@ -12,3 +14,9 @@ def centred_reward(center: float = 0.1, scale: float = 0.1) -> RewardScaling:
     pulse (r ~ 0.2) about +1.
     """
     return RewardScaling(loc=center, scale=scale, standard_normal=True)
+
+
+def stacked_history(length: int, keys: Sequence[str]) -> CatFrames:
+    """The last ``length`` observations of each of ``keys``, concatenated along the last axis
+    (oldest first); a (partial) reset fills a cavity's history with its first observation."""
+    return CatFrames(N=int(length), dim=-1, in_keys=list(keys), padding="same")

@@ -26,7 +26,8 @@ names = _model.zoo_names
 def card(name: str) -> dict:
     meta = read_meta(zoo_path(name))
     return {"name": name, "stage": meta.get("stage"), "K": meta.get("K"), "actions": meta.get("actions"),
-            "observation": meta.get("observation", "fields"), "card": meta.get("card", {}), "eval": meta.get("eval", {}),
+            "observation": meta.get("observation", "fields"), "memory": meta.get("memory", {"history": 1}),
+            "card": meta.get("card", {}), "eval": meta.get("eval", {}),
             "heldout": meta.get("heldout")}
 
 
@@ -45,7 +46,8 @@ def describe(name: str) -> str:
     c = card(name)
     k = c["card"]
     lines = [f"zoo:{name}: stage {c['stage']} (turns {', '.join(c['actions']['controlled'])} by "
-             f"{c['actions']['steps_deg']} deg), K = {c['K']}, observation {c['observation']}",
+             f"{c['actions']['steps_deg']} deg), K = {c['K']}, observation {c['observation']}"
+             + (f" (the last {c['memory']['history']} stacked)" if c["memory"].get("history", 1) > 1 else ""),
              f"  trained by:  {k.get('command') or 'not recorded'}",
              f"  commit:      {k.get('commit') or 'not recorded'} (laserrl {k.get('laserrl_version')})",
              f"  machine:     {k.get('machine') or 'not recorded'}, {k.get('date') or ''}",

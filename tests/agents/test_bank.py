@@ -68,6 +68,8 @@ def test_an_ensemble_needs_models_with_the_same_actions():
 class _Constant(torch.nn.Module):
     """A Q-network stand-in whose greedy action is ``action`` everywhere."""
 
+    in_keys = ("fields", "angles")
+
     def __init__(self, action, actions=3):
         super().__init__()
         self.num_actions, self.action = actions, action

@@ -141,7 +141,7 @@ def test_n_steps_must_be_a_positive_integer():
 def _agent(env, average_decay):
     from laserrl.agents.dqn import DQNAgent
 
-    return DQNAgent.build(env.action_spec_unbatched, 256, network={"channels": (4, 4), "kernel_size": 3, "pool": 4,
+    return DQNAgent.build(env.action_spec_unbatched, {"physics": {"n": 256}}, network={"channels": (4, 4), "kernel_size": 3, "pool": 4,
                           "hidden": (16,), "negative_slope": 0.01},
                           exploration={"start": 1.0, "end": 0.05, "decay_frames": 100.0}, gamma=0.9,
                           loss_function="smooth_l1", target={"kind": "soft", "tau": 0.01}, lr=1e-2, weight_decay=0.0,

@@ -1,5 +1,6 @@
 """The DDQN pipeline learns: after a small budget, the greedy policy ends episodes with
-a higher reward than a random policy on the same starts.
+a higher reward than a random policy on the same starts (the paper's r, which the agent reading
+measured signals is not given: it is trained on the readings' own reward).
 
 The paper's cavity with only 5 round trips per agent step and starts in [-40, -34] deg,
 where the laser is mode-locked but r rises towards alpha1 ~ -24 deg: the agent has to
@@ -21,9 +22,14 @@ CONF = Path(CONF_DIR)
 STARTS = [-40.0, -38.0, -36.0, -34.0]
 
 
-@pytest.mark.parametrize("n_steps", [1, 3])  # one-step TD (paper) and n-step returns
-def test_greedy_policy_beats_random_policy(tmp_path, n_steps):
-    overrides = [f"agent.n_steps={n_steps}",
+@pytest.mark.parametrize("variant", [
+    ["agent.n_steps=1"],  # one-step TD (the paper)
+    ["agent.n_steps=3"],  # n-step returns
+    # what instruments read (no fields), the last two readings stacked, the readings' reward
+    ["agent.n_steps=1", "env.observation=measured", "env.history=2"],
+], ids=["one-step", "n-step", "measured-history"])
+def test_greedy_policy_beats_random_policy(tmp_path, variant):
+    overrides = [*variant,
         f"run_dir={tmp_path}", "seed=0", "logger=none", "env.compile=false", "env.num_envs=16",
         "env.max_round_trips=5", "stage.init_angles_deg.alpha1=[-40,-34]", "stage.max_steps=8",
         "train.total_frames=2048", "train.progress=false", "train.plots=false",

@@ -265,3 +265,15 @@ def test_keywords_override_the_config():
     # a partial init_angles_deg keeps the stage's other angles
     assert task.init_angles_deg == {"alpha1": (-20.0, -20.0), "alpha2": (3.0, 3.0), "alpha3": (28.0, 28.0),
                                     "alpha_p": (88.0, 88.0)}
+
+
+@unbounded_fields  # the readings' Boxes are unbounded too
+def test_measured_observation_passes_the_checker():
+    measured = dict(FAST, observation="measured", instruments={"spectrum_span": 6.0, "autocorrelation_points": 16})
+    env = gymnasium.make(SISO, **measured)
+    check_env(env.unwrapped)
+    obs, info = env.reset(seed=0)
+    assert set(obs) == {"spectrum", "energy", "autocorrelation", "angles"} and obs["spectrum"].shape == (64,)
+    assert obs["autocorrelation"].shape == (16,) and "r" in info
+    with pytest.raises(ConfigError, match="history: the Gymnasium envs give one observation per step"):
+        gymnasium.make(SISO, history=2, **measured)
