@@ -149,7 +149,8 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     starts = _as_list(eval_cfg.get("starts_deg")) or [base[ANGLE_NAMES.index(first)]]
     combos = [(K, s, rep) for K in Ks for s in starts for rep in range(repeats)]
     B = len(combos)
-    env = make_env(env_cfg, stage_cfg, B, seed, centred=False, max_steps=steps,
+    # K stays at each value of the grid (a drift of the training stage is off; laserrl-control drives K over time)
+    env = make_env(env_cfg, stage_cfg, B, seed, centred=False, max_steps=steps, K_drift=0.0, K_jump=0.0,
                    init_fields=eval_cfg.get("init_fields") or stage_cfg.get("init_fields", "sech"))
     policy = policy_for_env(env)
     init = torch.tensor([base] * B, dtype=torch.float64)

@@ -27,7 +27,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import hold_action, num_actions
-from laserrl.envs.step import CavityState, StepNumerics, observe, observe_measured, step, wrap_angle
+from laserrl.envs.step import CavityState, StepNumerics, drift_K, observe, observe_measured, step, wrap_angle
 from laserrl.physics.instruments import Instruments, spectrum_matrix
 from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
@@ -89,6 +89,10 @@ class LaserTask:
     # initial angle of each of the four plates: a number or a [low, high] range
     init_angles_deg: dict = field(default_factory=lambda: {"alpha1": (-40.0, -10.0), "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0})
     K: float | Sequence[float] = 0.1  # fixed, or a [low, high] range sampled at reset
+    # within an episode K may move inside that range: a random walk of K_drift per step (reflected at its
+    # ends) and, with probability K_jump per step, a jump to a fresh draw (laserrl.envs.step.drift_K)
+    K_drift: float = 0.0
+    K_jump: float = 0.0
     init_fields: str = "sech"  # "sech" or "noise"
     sech_amplitude: float = 0.5
     sech_width: float = 2.0
@@ -136,6 +140,12 @@ class LaserTask:
             raise ValueError(f"init_angles_deg must give all four angles, missing {sorted(missing)}")
         self.init_angles_deg = {k: _range(init[k], f"init_angles_deg.{k}") for k in ANGLE_NAMES}
         self.K = _range(self.K, "K")
+        if not finite_number(self.K_drift, "K_drift") >= 0:
+            raise ValueError(f"K_drift must be >= 0, got {self.K_drift!r}")
+        if not 0 <= finite_number(self.K_jump, "K_jump") <= 1:
+            raise ValueError(f"K_jump must be a probability in [0, 1], got {self.K_jump!r}")
+        if (self.K_drift or self.K_jump) and self.K[0] == self.K[1]:
+            raise ValueError(f"K_drift and K_jump move K within a range: give K as [low, high], got {self.K[0]!r}")
         if self.init_fields not in ("sech", "noise"):
             raise ValueError(f"init_fields must be 'sech' or 'noise', got {self.init_fields!r}")
         for name, largest in (("sech_amplitude", MAX_INIT_AMPLITUDE), ("sech_width", math.inf),
@@ -329,6 +339,9 @@ class LaserCavityEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").reshape(self.batch_size)
+        t = self.task
+        if t.K_drift or t.K_jump:  # K for this step
+            self.state.K = drift_K(self.state.K, t.K[0], t.K[1], t.K_drift, t.K_jump, self._rng)
         self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
         out = self._observation(measured.r, measured.round_trips)
         # the training reward: r, or with measured observations the readings' r_measured

@@ -33,8 +33,8 @@ from laserrl.envs.actions import action_to_deltas
 from laserrl.physics import CavityParams, NonFiniteFieldError, reward_terms, run_to_convergence
 from laserrl.physics.instruments import Instruments, measure, measured_reward
 
-__all__ = ["CavityState", "StepNumerics", "StepOutput", "apply_action", "observe", "observe_measured", "step",
-           "step_cavity", "wrap_angle"]
+__all__ = ["CavityState", "StepNumerics", "StepOutput", "apply_action", "drift_K", "observe", "observe_measured",
+           "step", "step_cavity", "wrap_angle"]
 
 
 def wrap_angle(a: torch.Tensor) -> torch.Tensor:
@@ -120,6 +120,22 @@ def step_cavity(state: CavityState, angles: torch.Tensor, params: CavityParams,
                       batch_size=state.batch_size)
     return new, StepOutput(r=r, round_trips=result.round_trips, converged=result.converged,
                            batch_size=state.batch_size)
+
+
+def drift_K(K: torch.Tensor, low: float, high: float, sigma: float, jump_prob: float,
+            generator: torch.Generator | None = None) -> torch.Tensor:
+    """K (B,) one agent step later: a random walk K + sigma xi reflected into [low, high], and
+    with probability ``jump_prob`` per cavity a jump to a fresh uniform draw in [low, high]
+    (the birefringence of a real fiber drifts with temperature and jumps when it is touched)."""
+    B, where = K.shape[0], (generator.device if generator is not None else K.device)
+    xi = torch.randn(B, generator=generator, dtype=torch.float64, device=where).to(K.device)
+    uni = torch.rand((2, B), generator=generator, dtype=torch.float64, device=where).to(K.device)
+    width = high - low
+    walked = K + sigma * xi
+    if width > 0:  # reflect at the bounds (period 2 width); values inside stay exactly as they are
+        x = torch.remainder(walked - low, 2 * width)
+        walked = torch.where((walked < low) | (walked > high), low + torch.where(x > width, 2 * width - x, x), walked)
+    return torch.where(uni[0] < jump_prob, low + uni[1] * width, walked)
 
 
 def apply_action(angles: torch.Tensor, action: torch.Tensor, steps_rad: torch.Tensor,
