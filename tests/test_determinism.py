@@ -9,21 +9,26 @@ import torch
 SMOKE = ["experiment=smoke", "env.physics.n=64", "env.physics.z_steps=2", "train.total_frames=128"]
 
 
-def _train(tmp_path, name, *args):
+def _start(tmp_path, name, *args):
     exe = Path(sys.executable).parent / "laserrl-train"
     out = tmp_path / name
-    res = subprocess.run([str(exe), *SMOKE, *args, f"hydra.run.dir={out}"], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=600)
-    assert res.returncode == 0, res.stderr[-2000:]
+    proc = subprocess.Popen([str(exe), *SMOKE, *args, f"hydra.run.dir={out}"], cwd=tmp_path, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    return proc, out
+
+
+def _result(proc, out):
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-2000:]
     history = [{k: v for k, v in h.items() if not k.startswith("time")}
                for h in json.loads((out / "history.json").read_text())]
     return history, torch.load(out / "checkpoints" / "last.pt", weights_only=False)["qnet"]
 
 
 def test_same_seed_same_run_other_seed_other_run(tmp_path):
-    h1, w1 = _train(tmp_path, "a", "seed=5")
-    h2, w2 = _train(tmp_path, "b", "seed=5")
-    h3, w3 = _train(tmp_path, "c", "seed=6")
+    # three separate processes at once (each is mostly start-up): nothing is shared between them
+    runs = [_start(tmp_path, name, f"seed={seed}") for name, seed in (("a", 5), ("b", 5), ("c", 6))]
+    (h1, w1), (h2, w2), (h3, w3) = (_result(*run) for run in runs)
     assert h1 == h2  # rewards, losses, epsilon: every logged number
     assert all(torch.equal(w1[k], w2[k]) for k in w1)
     assert h1 != h3 and not all(torch.equal(w1[k], w3[k]) for k in w1)

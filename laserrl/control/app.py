@@ -165,6 +165,9 @@ def run_control(cfg: DictConfig) -> dict:
         state = load_model(cfg.checkpoint)
         stage = state["config"]["stage"]
         env_cfg = dict(state["config"]["env"])  # the per-step physics the DQN was trained with
+        if int(env_cfg.get("history", 1)) != 1:
+            raise ConfigError(f"checkpoint: {state['path']} reads the last {env_cfg['history']} readings at once "
+                              "(env.history); laserrl-control steps its cavities one reading at a time")
         rl_controlled = list(stage["controlled"])
         if controlled is not None and any(n in NEEDS_CHECKPOINT for n in names) and list(controlled) != rl_controlled:
             raise ConfigError(f"controlled={list(controlled)} differs from the angles the checkpoint's DQN controls "

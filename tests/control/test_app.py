@@ -127,6 +127,19 @@ def test_entry_point_runs_every_controller(checkpoint, tmp_path):
     assert all(f"| {n} |" in table for n in ALL)
 
 
+def test_a_model_that_stacks_readings_is_refused(checkpoint, tmp_path):
+    import json
+    import shutil
+
+    stacked = tmp_path / "stacked"
+    shutil.copytree(checkpoint, stacked)
+    meta = json.loads((stacked / "model.json").read_text())
+    meta["config"]["env"].update(observation="measured", history=3)
+    (stacked / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"reads the last 3 readings at once \(env.history\)"):
+        _run(["controller=rl", f"checkpoint={stacked}"], tmp_path / "run")
+
+
 def test_sweep_metric(tmp_path):
     cfg = _compose(["controller=esc", "scenario=constant", *SMOKE_PHYSICS, "num_cavities=2", "scenario.steps=3", "plots=false",
                     f"run_dir={tmp_path}", "metric=mean_r"])
