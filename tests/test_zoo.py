@@ -1,6 +1,7 @@
 """The model zoo: every shipped model loads by name, is small, carries a full model card, and
 re-evaluated on its protocol gives the success its card records."""
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -40,7 +41,12 @@ def _short_protocol(name: str, recorded: dict) -> dict:
     return {**eval_cfg, "compile": True, "plots": False}
 
 
-@pytest.mark.parametrize("name", NAMES)
+def _replica(name: str) -> bool:
+    """The seeds of a recipe (NAME-sS) beside the model the docs name: re-evaluated in the slow run."""
+    return re.search(r"-s\d+$", name) is not None
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if _replica(n) else n for n in NAMES])
 def test_every_zoo_model_reproduces_its_recorded_success(name, tmp_path):
     """The card's evaluation, rerun: the same rollouts (the recorded seed and starts) succeed. A
     different CPU may round differently; one rollout may flip."""
