@@ -264,7 +264,12 @@ def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> d
     Ks = [float(k) for k in result["by_K"]]
     rules = {"single": _summary(result)}
     return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "rules": rules,
-            "grid_success": {"single": sum(v["success_rate"] >= 0.9 for v in result["by_K"].values()) / len(Ks)}}
+            "grid_success": grid_success(rules, len(Ks))}
+
+
+def grid_success(rules: Mapping[str, dict], num_K: int) -> dict[str, float]:
+    """Per rule, the fraction of the grid's K at which it succeeds on at least 90 % of the starts."""
+    return {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / num_K for name, rule in rules.items()}
 
 
 def _load_member(entry, index: int) -> list[dict]:
@@ -344,8 +349,6 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members],
               "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
               "stage": stage_cfg.get("name"), "trial_rule": dataclasses.asdict(rule), "rules": rules,
-              # the fraction of grid points at which a rule succeeds on at least 90 % of the starts
-              "grid_success": {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / len(Ks)
-                               for name, rule in rules.items()}}
+              "grid_success": grid_success(rules, len(Ks))}
     write_eval(result, out_dir, eval_cfg.get("plots", True), kind="generalisation")
     return result

@@ -46,11 +46,13 @@ def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float)
 
     hidden = check_numbers(hidden, "agent.network.hidden", low=1, integer=True)
     negative_slope = check_number(negative_slope, "agent.network.negative_slope", low=0)
-    ins = dict(env_cfg.get("instruments") or {})
+    from laserrl.physics.instruments import Instruments
+
     try:
-        return MeasuredQNet(num_actions, bins=int(ins.get("spectrum_bins", 64)), points=int(ins.get("autocorrelation_points", 64)),
+        ins = Instruments(**dict(env_cfg.get("instruments") or {}))  # its defaults for the settings not given
+        return MeasuredQNet(num_actions, bins=ins.spectrum_bins, points=ins.autocorrelation_points,
                             history=history_length(env_cfg), hidden=tuple(hidden), negative_slope=negative_slope)
-    except ValueError as err:
+    except (TypeError, ValueError) as err:
         raise ConfigError(f"env.instruments: {err}") from None
 
 

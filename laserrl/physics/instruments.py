@@ -51,10 +51,10 @@ from dataclasses import dataclass, fields as dc_fields
 
 import torch
 
-from laserrl.physics.observables import trapezoid_energy
+from laserrl.physics.observables import kurtosis, trapezoid_energy
 from laserrl.physics.params import CavityParams
 
-__all__ = ["Instruments", "Measurement", "kurtosis", "measure", "measured_reward", "spectrum_matrix"]
+__all__ = ["Instruments", "Measurement", "measure", "measured_reward", "spectrum_matrix"]
 
 
 @dataclass(frozen=True)
@@ -203,14 +203,6 @@ def measure(u: torch.Tensor, v: torch.Tensor, params: CavityParams, instruments:
         if i.autocorrelation_noise:
             ac = ac + i.autocorrelation_noise * normal(B, i.autocorrelation_points)
     return Measurement(spectrum=S, energy=W, autocorrelation=ac)
-
-
-def kurtosis(s: torch.Tensor) -> torch.Tensor:
-    """mean((s - mean s)^4) / std(s)^4 over the last axis (population std); inf where s has no spread."""
-    centred = s - s.mean(-1, keepdim=True)
-    var = centred.square().mean(-1)
-    m4 = centred.pow(4).mean(-1) / var.square()
-    return torch.where(var > 0, m4, torch.full_like(m4, float("inf")))
 
 
 def measured_reward(m: Measurement, reward: str = "autocorrelation") -> torch.Tensor:

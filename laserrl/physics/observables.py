@@ -13,7 +13,7 @@ import torch
 from laserrl.physics.checks import check_fields
 from laserrl.physics.params import CavityParams
 
-__all__ = ["amplitude", "reward_terms", "convergence", "trapezoid_energy"]
+__all__ = ["amplitude", "kurtosis", "reward_terms", "convergence", "trapezoid_energy"]
 
 
 def trapezoid_energy(power: torch.Tensor, dt: float) -> torch.Tensor:
@@ -35,12 +35,17 @@ def reward_terms(u: torch.Tensor, v: torch.Tensor, params: CavityParams):
     check_fields(u, v, params)
     phi = amplitude(u, v)
     energy = torch.sqrt(trapezoid_energy(phi.square(), params.dt).clamp_min(0.0))
-    s = torch.fft.fft(phi).abs()
+    m4 = kurtosis(torch.fft.fft(phi).abs())
+    return energy, m4, energy / m4
+
+
+def kurtosis(s: torch.Tensor) -> torch.Tensor:
+    """M4 = mean((s - mean s)^4) / std(s)^4 over the last axis (population std); inf where s has
+    no spread."""
     centred = s - s.mean(-1, keepdim=True)
     var = centred.square().mean(-1)
     m4 = centred.pow(4).mean(-1) / var.square()
-    m4 = torch.where(var > 0, m4, torch.full_like(m4, float("inf")))
-    return energy, m4, energy / m4
+    return torch.where(var > 0, m4, torch.full_like(m4, float("inf")))
 
 
 def convergence(u: torch.Tensor, v: torch.Tensor, u_prev: torch.Tensor, v_prev: torch.Tensor) -> torch.Tensor:

@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from laserrl.physics import CavityParams, sech_fields
-from laserrl.physics.instruments import Instruments, kurtosis, measure, measured_reward, spectrum_matrix
+from laserrl.physics.instruments import Instruments, measure, measured_reward, spectrum_matrix
+from laserrl.physics.observables import kurtosis
 
 P = CavityParams()
 QUIET = dict(spectrum_noise=0.0, spectrum_floor=0.0, energy_noise=0.0, autocorrelation_noise=0.0)
