@@ -49,6 +49,7 @@ def _eval_app(cfg: DictConfig) -> float:
     with user_errors("laserrl-eval"):
         stage = OmegaConf.to_container(cfg.stage, resolve=True) if cfg.get("stage") else None
         eval_cfg = OmegaConf.to_container(cfg.eval, resolve=True)
+        eval_cfg["physics"] = OmegaConf.to_container(cfg.env.physics, resolve=True) if cfg.get("env") else {}
         if cfg.get("bank"):
             bank = OmegaConf.to_container(cfg.bank, resolve=True) if OmegaConf.is_list(cfg.bank) else cfg.bank
             if not isinstance(bank, list):

@@ -134,6 +134,9 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     if eval_cfg.get("dtype"):
         env_cfg["dtype"] = eval_cfg["dtype"]
     env_cfg["compile"] = bool(eval_cfg.get("compile", env_cfg.get("compile", False)))
+    mismatch = {k: v for k, v in dict(eval_cfg.get("physics") or {}).items() if v is not None}
+    if mismatch:  # a cavity other than the one trained on (laserrl-eval env.physics.g0=...)
+        env_cfg["physics"] = {**dict(env_cfg.get("physics") or {}), **mismatch}
     check_eval_config(eval_cfg)
     steps = int(eval_cfg["steps"])
     repeats = int(eval_cfg.get("repeats") or 1)
@@ -191,7 +194,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     return {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
         "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
-        "min_round_trips": min_round_trips(env_cfg), "K": Ks,
+        "min_round_trips": min_round_trips(env_cfg), "K": Ks, "physics_changed": mismatch,
         "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,

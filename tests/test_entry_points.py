@@ -52,13 +52,14 @@ def test_collector_does_not_ask_for_recurrent_policy_transforms(trained):
     assert "missing transforms required by the policy" not in res.stderr
 
 
-def test_eval_entry_point_on_a_checkpoint_at_another_K(trained, tmp_path):
+def test_eval_entry_point_on_a_checkpoint_at_another_K_and_cavity(trained, tmp_path):
     out, _ = trained
     res = run("laserrl-eval", f"checkpoint={out}", "eval.K=0.2", "eval.steps=2", "eval.starts_deg=[-30]",
-              "eval.compile=false", "eval.plots=false", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+              "env.physics.g0=1.8", "eval.compile=false", "eval.plots=false", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     result = json.loads((tmp_path / "eval.json").read_text())
     assert result["K"] == [0.2] and result["per_start"][0]["K"] == 0.2
+    assert result["physics_changed"] == {"g0": 1.8}
     assert f"eval: {tmp_path / 'eval.json'}" in res.stdout
 
 
@@ -157,6 +158,25 @@ def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
     ev2 = json.loads((tmp_path / "02-duo" / "eval.json").read_text())
     assert (len(ev1["per_start"]), ev1["hold_r"], ev1["steps"]) == (16, None, 2)
     assert (len(ev2["per_start"]), ev2["hold_r"], ev2["steps"]) == (5, 0.1, 2)
+
+
+def test_any_k_experiment_trains_one_measured_agent_over_the_K_range(tmp_path):
+    """experiment=miso_any_k (its four-controller stage, tiny): K drawn from [-0.2, 0.4] and moving in
+    training, validation and evaluation at seven fixed K, measured readings with a history of 4."""
+    tiny = ["threads=1", "env.num_envs=8", "env.max_round_trips=3", "env.compile=false", "env.physics.n=64",
+            "env.physics.z_steps=2", "env.instruments.spectrum_span=6", "env.instruments.spectrum_bins=16",
+            "env.instruments.autocorrelation_points=16", "collector.frames_per_batch=32", "replay.init_random_frames=32",
+            "optim.batch_size=16", "logger=none", "train.plots=false", "train.progress=false"]
+    res = run("laserrl-train", "experiment=miso_any_k", *tiny, "curriculum.stages=[miso]", "curriculum.total_frames=[64]",
+              "curriculum.max_minutes=[null]", "+curriculum.stage_overrides.miso.protocol.steps=3",
+              "+curriculum.stage_overrides.miso.max_steps=4", "curriculum.config_overrides.miso.train.eval_every_frames=32",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    ev = json.loads((tmp_path / "01-miso" / "eval.json").read_text())
+    assert ev["K"] == [-0.2, -0.1, 0.0, 0.1, 0.2, 0.3, 0.4] and len(ev["per_start"]) == 7 * 3
+    meta = json.loads((tmp_path / "01-miso" / "model" / "model.json").read_text())
+    assert (meta["observation"], meta["memory"]) == ("measured", {"history": 4})
+    assert meta["config"]["stage"]["K"] == [-0.2, 0.4] and meta["config"]["stage"]["K_drift"] > 0
 
 
 def test_transfer_then_bank_generalisation(trained, tmp_path):

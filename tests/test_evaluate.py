@@ -63,3 +63,23 @@ def test_eval_init_fields_sets_the_initial_fields_of_the_protocol(init_fields):
     paths = [p["reward_path"] for p in evaluate_policy(_hold_policy, env_cfg, stage_cfg, eval_cfg)["per_start"]]
     # the two copies of one start: identical from the sech fields, each with its own draw from noise
     assert (paths[0] == paths[1]) == (init_fields == "sech"), paths
+
+
+def test_eval_on_a_cavity_other_than_the_trained_one():
+    """eval.physics (laserrl-eval env.physics.KEY=...) changes the cavity evaluated on, and
+    eval.json says which values changed; a bad value names its key."""
+    from laserrl.evaluate import evaluate_policy
+
+    env_cfg = {"num_envs": 2, "max_round_trips": 3, "tol": None, "dtype": "complex64", "compile": False,
+               "reward_center": 0.1, "reward_scale": 0.1, "physics": {"n": 64, "z_steps": 2}}
+    stage_cfg = {"name": "siso", "controlled": ["alpha1"], "steps_deg": [2.0], "K": 0.1, "init_fields": "sech",
+                 "init_angles_deg": {"alpha1": [-40.0, -10.0], "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0},
+                 "max_steps": 3}
+    eval_cfg = {"steps": 2, "starts_deg": [-24.0], "success_r": 0.18}
+    same = evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics": {"g0": None}})
+    other = evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics": {"g0": 1.9, "D": None}})
+    assert same["physics_changed"] == {} and other["physics_changed"] == {"g0": 1.9}
+    assert same["per_start"][0]["reward_path"] == evaluate_policy(_hold_policy, env_cfg, stage_cfg, eval_cfg)["per_start"][0]["reward_path"]
+    assert other["per_start"][0]["reward_path"] != same["per_start"][0]["reward_path"]  # more gain: another pulse
+    with pytest.raises(ValueError, match="env.physics.g0"):
+        evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics": {"g0": -1.0}})

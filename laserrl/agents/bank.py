@@ -5,7 +5,9 @@ K is not observed, so a bank cannot simply pick the model trained nearest the tr
 highest (each model's estimate of the return it can still collect) and acts with that
 model's greedy action. ``TrialBank`` tries the models in turn on the running laser instead:
 it keeps a model while the measured reward r rises or holds the lock, and moves on to the
-next one when r has not risen over a trial of a few steps. Neither is told K. The oracle
+next one when r has not risen over a trial of a few steps (models that read the instruments,
+``env.observation=measured``, are judged by the readings' reward ``r_measured``, whose scale
+is its own: set ``TrialRule.lock_r`` in it). Neither is told K. The oracle
 rule that knows K (nearest training K) is an evaluation-side grouping, see
 ``laserrl.evaluate.evaluate_bank``.
 
@@ -147,7 +149,10 @@ class TrialBank(nn.Module):
 
 
 def make_trial_actor(qnets: list[QNet], action_spec, rule: TrialRule = TrialRule()) -> TensorDictSequential:
-    """Greedy policy of a ``TrialBank``: writes ``action``, ``action_value`` and ``model``."""
-    bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*_in_keys(qnets), "r", "step_count"],
+    """Greedy policy of a ``TrialBank``: writes ``action``, ``action_value`` and ``model``. It judges
+    the models by the reward their observation gives: r with the fields, r_measured with readings."""
+    keys = _in_keys(qnets)
+    reward = "r" if "fields" in keys else "r_measured"
+    bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*keys, reward, "step_count"],
                             out_keys=["action_value", "model"])
     return TensorDictSequential(bank, QValueModule(spec=action_spec))

@@ -31,6 +31,18 @@ def roc_auc(score: np.ndarray, positive: np.ndarray) -> float | None:
     return float(mannwhitneyu(score[positive], score[~positive]).statistic / (positive.sum() * (~positive).sum()))
 
 
+def separating_threshold(score: np.ndarray, positive: np.ndarray) -> float | None:
+    """The score above which states count as positive that best separates the two classes
+    (Youden's J: the largest true-positive rate minus false-positive rate), midway between
+    neighbouring scores; None without both classes."""
+    if positive.all() or not positive.any():
+        return None
+    order = np.sort(np.unique(score))
+    cuts = 0.5 * (order[1:] + order[:-1])
+    j = [(score[positive] >= c).mean() - (score[~positive] >= c).mean() for c in cuts]
+    return float(cuts[int(np.argmax(j))])
+
+
 def settled_states(states: int, seed: int, params: CavityParams, K_range=(-0.2, 0.4), round_trips: int = 300):
     """(u, v, r) of ``states`` cavities settled from noise at random angles and K (complex128)."""
     g = torch.Generator().manual_seed(seed)
@@ -59,7 +71,10 @@ def reward_agreement(states: int = 400, seed: int = 0, instruments: Instruments 
             "auc_r>=0.15": roc_auc(score, r_np >= 0.15), "auc_r>=0.1": roc_auc(score, r_np >= 0.1),
             # the measured reward's scale: its median over the states with r >= 0.15 and below 0.02
             "median_locked": float(np.median(score[r_np >= 0.15])) if (r_np >= 0.15).any() else None,
-            "median_r<0.02": float(np.median(score[r_np < 0.02])) if (r_np < 0.02).any() else None}
+            "median_r<0.02": float(np.median(score[r_np < 0.02])) if (r_np < 0.02).any() else None,
+            # the measured reward's levels that stand for r = 0.15 and r = 0.1 (a controller's lock thresholds)
+            "threshold_r>=0.15": separating_threshold(score, r_np >= 0.15),
+            "threshold_r>=0.1": separating_threshold(score, r_np >= 0.1)}
     return out
 
 

@@ -26,7 +26,7 @@ from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillCli
 from laserrl.control.esc import ESCParams, ExtremumSeeking
 from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
 from laserrl.control.metrics import per_cavity, summarise
-from laserrl.control.plant import CavityPlant
+from laserrl.control.plant import CavityPlant, Plates
 from laserrl.control.scenarios import Scenario
 from laserrl.envs.factory import history_length
 from laserrl.envs.laser_env import ANGLE_NAMES
@@ -111,7 +111,7 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
             mode[name][:, t] = controllers[name].mode.cpu().numpy()
         obs = plant.step(command)
         r[:, t] = plant.r.cpu().numpy()
-        angles[:, t] = plant.angles_deg.cpu().numpy()
+        angles[:, t] = plant.true_angles_deg.cpu().numpy()  # where the plates are
         round_trips[:, t] = obs["round_trips"].reshape(-1).cpu().numpy()
         if progress and ((t + 1) % max(1, T // 10) == 0 or t + 1 == T):
             means = ", ".join(f"{name} {r[part[name], : t + 1].mean():.3f}" for name in controllers)
@@ -183,10 +183,11 @@ def run_control(cfg: DictConfig) -> dict:
     if cfg.compile is not None:
         env_cfg["compile"] = bool(cfg.compile)
     B, seed = int(cfg.num_cavities), int(cfg.seed)
+    plates = _params(Plates, container.get("plates") or {}, "plates")
     K, init_angles = scenario.sample(B, seed)
     # every controller on its own copy of the B cavities, all in one plant
     plant = CavityPlant(env_cfg, controlled, B * len(names), scenario.steps, seed=seed,
-                        init_fields=scenario.init_fields, device=cfg.device)
+                        init_fields=scenario.init_fields, device=cfg.device, plates=plates)
     policy = policy_for(plant) if policy_for else None
     controllers = {n: build_controller(n, configs[n], controlled, B, seed, policy, steps_deg, where[n]) for n in names}
 
@@ -209,6 +210,7 @@ def run_control(cfg: DictConfig) -> dict:
         "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
         "num_cavities": B, "seed": seed, "controlled": controlled, "locked_r": float(cfg.locked_r),
         "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state else None,
+        "plates": {"noise_deg": plates.noise_deg, "backlash_deg": plates.backlash_deg},
         "env": {k: env_cfg[k] for k in ("max_round_trips", "tol", "dtype") if k in env_cfg} | {"physics": env_cfg.get("physics")},
         "seconds": round(seconds, 1), "results": results, "K": _rounded(K), "init_angles_deg": _rounded(init_angles, 3), "traces": traces,
     }

@@ -29,8 +29,11 @@ from laserrl.envs.laser_env import ANGLE_NAMES
 
 
 def observed_r(obs) -> np.ndarray:
-    """r (B,) float64 numpy from a plant observation."""
-    return obs["r"].reshape(-1).detach().cpu().numpy().astype(np.float64)
+    """The reward a controller reads (B,), float64 numpy, from a plant observation: the
+    instruments' ``r_measured`` where the observation is measured (an experiment has no other),
+    else the paper's ``r``."""
+    key = "r_measured" if "r_measured" in obs.keys() else "r"
+    return obs[key].reshape(-1).detach().cpu().numpy().astype(np.float64)
 
 
 def per_angle(value, controlled, name: str) -> np.ndarray:

@@ -8,7 +8,9 @@ The hybrid's rule (per cavity, the paper's section 4):
 * ESC -> deep RL when r < ``unlock_r`` for ``unlock_steps`` consecutive steps (the lock
   is lost, e.g. after a jump of K that ESC's local search cannot follow).
 
-Both counters restart at every switch.
+Both counters restart at every switch. r is the reward the controllers read
+(``laserrl.control.esc.observed_r``): the paper's r, or with measured observations the
+instruments' r_measured, whose scale is its own (set ``lock_r`` and ``unlock_r`` in it).
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from laserrl.control.checks import integer, is_finite_number
-from laserrl.control.esc import ESCParams, ExtremumSeeking
+from laserrl.control.esc import ESCParams, ExtremumSeeking, observed_r
 from laserrl.envs.actions import action_to_deltas
 from laserrl.envs.laser_env import ANGLE_NAMES
 
@@ -94,7 +96,7 @@ class Hybrid:
         self.rl.reset(obs, angles_deg)
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
-        r = obs["r"].reshape(-1).to(torch.float64).cpu()
+        r = torch.from_numpy(observed_r(obs))
         self._above = torch.where(r >= self.rule.lock_r, self._above + 1, 0)
         self._below = torch.where(r < self.rule.unlock_r, self._below + 1, 0)
         esc = self.mode == MODE_ESC

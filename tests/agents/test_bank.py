@@ -118,6 +118,26 @@ def test_trial_actor_acts_with_the_model_on_trial_per_cavity():
     assert out["model"].tolist() == [1, 0] and out["action"].tolist() == [2, 0]
 
 
+class _MeasuredConstant(_Constant):
+    in_keys = ("spectrum", "energy", "angles")
+
+    def forward(self, spectrum, energy, angles):
+        return super().forward(spectrum[..., None], angles)
+
+
+def test_trial_actor_of_measured_models_judges_them_by_the_readings_reward():
+    from laserrl.agents.bank import TrialRule, make_trial_actor
+
+    actor = make_trial_actor([_MeasuredConstant(0), _MeasuredConstant(2)], Categorical(3), TrialRule(steps=1, min_rise=0.01))
+    td = TensorDict(spectrum=torch.zeros(1, 8), energy=torch.zeros(1, 1), angles=torch.zeros(1, 4),
+                    r=torch.tensor([[0.05]]), r_measured=torch.tensor([[0.05]]), step_count=torch.tensor([[0]]), batch_size=[1])
+    with torch.no_grad():
+        actor(td.clone())
+        td["step_count"] += 1
+        td["r"] = torch.tensor([[0.5]])  # the paper's r (not measured) rose; the readings' did not
+        assert actor(td.clone())["model"].tolist() == [1]
+
+
 @pytest.mark.parametrize("key, value", [("steps", 0), ("min_rise", -0.1), ("lock_r", float("nan"))])
 def test_trial_rule_names_a_bad_setting(key, value):
     from laserrl.agents.bank import TrialRule

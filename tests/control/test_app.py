@@ -74,6 +74,9 @@ def _run(overrides, tmp_path):
     (["controller=esc", "controlled=[alpha7]"], "controlled"),
     (["controller=esc", "metric=speed"], "metric"),
     (["controller=esc", "scenario.jumps.times=[9]"], "scenario.jumps.times"),
+    (["controller=esc", "plates.noise_deg=-1"], "plates.noise_deg"),
+    (["controller=esc", "plates.backlash_deg=.nan"], "plates.backlash_deg"),
+    (["controller=esc", "+plates.friction=1"], "plates: .*friction"),
 ])
 def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
     with pytest.raises(ValueError, match=match):

@@ -91,6 +91,20 @@ def test_measured_reward_ranks_settled_states_as_the_papers_r_does():
     assert out["locked"]["r>=0.15"] >= 2  # the draw has mode-locked states to tell apart
     assert ac["spearman"] > 0.9 and ac["auc_r>=0.15"] > 0.97
     assert ac["spearman"] > sp["spearman"] + 0.1  # the optical spectrum's kurtosis is the weaker stand-in
+    # the level standing for r = 0.15 lies between the scores of plane waves and of pulses
+    assert ac["median_r<0.02"] < ac["threshold_r>=0.15"] < ac["median_locked"]
+    assert ac["threshold_r>=0.1"] <= ac["threshold_r>=0.15"]
+
+
+def test_separating_threshold():
+    import numpy as np
+
+    from laserrl.analysis.measured import separating_threshold
+
+    score = np.array([0.1, 0.2, 0.3, 0.6, 0.7, 0.25])
+    assert separating_threshold(score, score >= 0.5) == pytest.approx(0.45)
+    assert separating_threshold(score, np.array([0, 0, 1, 1, 1, 0], bool)) == pytest.approx(0.275)
+    assert separating_threshold(score, np.zeros(6, bool)) is None
 
 
 @pytest.mark.parametrize("settings, message", [
