@@ -28,7 +28,7 @@ from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
-from laserrl.envs.laser_env import ANGLE_NAMES
+from laserrl.envs.laser_env import ANGLE_NAMES, reset_at
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -160,11 +160,11 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     init[:, ANGLE_NAMES.index(first)] = torch.tensor([s for _, s, _ in combos], dtype=torch.float64)
     reset_td = TensorDict(init_angles=torch.deg2rad(init), init_K=torch.tensor([K for K, _, _ in combos], dtype=torch.float64),
                           batch_size=[B])
-    td = env.reset(reset_td)
+    td = reset_at(env, reset_td)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(steps, policy, auto_reset=False, tensordict=td)
     r = rollout["next", "r"].squeeze(-1)  # (B, steps)
-    angles = torch.rad2deg(rollout["next", "angles"].double())  # (B, steps, 4)
+    angles = torch.rad2deg(rollout["next", "angles"][..., -4:].double())  # (B, steps, 4): the newest of a history
     ctrl = [ANGLE_NAMES.index(n) for n in stage_cfg["controlled"]]
     success = success_mask(r, threshold, hold_r)
     per_start = []

@@ -83,3 +83,30 @@ def test_eval_on_a_cavity_other_than_the_trained_one():
     assert other["per_start"][0]["reward_path"] != same["per_start"][0]["reward_path"]  # more gain: another pulse
     with pytest.raises(ValueError, match="env.physics.g0"):
         evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics": {"g0": -1.0}})
+
+
+def test_eval_of_a_model_with_stacked_readings_starts_where_the_protocol_says():
+    """With env.history the env is wrapped in TorchRL's CatFrames; the protocol's start angle and
+    K still reach the cavities, and the angle path is the newest reading's."""
+    from laserrl.evaluate import evaluate_policy
+
+    env_cfg = {"num_envs": 2, "max_round_trips": 3, "tol": None, "dtype": "complex64", "compile": False,
+               "reward_center": None, "reward_scale": None, "physics": {"n": 64, "z_steps": 2},
+               "observation": "measured", "history": 3,
+               "instruments": {"spectrum_bins": 16, "spectrum_span": 6.0, "autocorrelation_points": 16}}
+    stage_cfg = {"name": "siso", "controlled": ["alpha1"], "steps_deg": [2.0], "K": 0.1, "init_fields": "sech",
+                 "init_angles_deg": {"alpha1": [-40.0, -10.0], "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0},
+                 "max_steps": 3}
+    seen = {}
+
+    def hold_and_look(env):
+        act = _hold_policy(env)
+
+        def policy(td):
+            seen.setdefault("K", env.base_env.state.K.clone())
+            return act(td)
+        return policy
+
+    out = evaluate_policy(hold_and_look, env_cfg, stage_cfg, {"steps": 2, "starts_deg": [50.0], "success_r": 0.18, "K": [-0.15]})
+    assert [a[0] for a in out["per_start"][0]["angle_path_deg"]] == pytest.approx([50.0, 50.0], abs=1e-4)
+    assert torch.allclose(seen["K"], torch.tensor([-0.15], dtype=torch.float64))

@@ -28,7 +28,6 @@ from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
 from laserrl.control.metrics import per_cavity, summarise
 from laserrl.control.plant import CavityPlant, Plates
 from laserrl.control.scenarios import Scenario
-from laserrl.envs.factory import history_length
 from laserrl.envs.laser_env import ANGLE_NAMES
 
 #: ``controller=all`` runs these, in this order
@@ -166,9 +165,6 @@ def run_control(cfg: DictConfig) -> dict:
         state = load_model(cfg.checkpoint)
         stage = state["config"]["stage"]
         env_cfg = dict(state["config"]["env"])  # the per-step physics the DQN was trained with
-        if history_length(env_cfg) != 1:
-            raise ConfigError(f"checkpoint: {state['path']} reads the last {env_cfg['history']} readings at once "
-                              "(env.history); laserrl-control steps its cavities one reading at a time")
         rl_controlled = list(stage["controlled"])
         if controlled is not None and any(n in NEEDS_CHECKPOINT for n in names) and list(controlled) != rl_controlled:
             raise ConfigError(f"controlled={list(controlled)} differs from the angles the checkpoint's DQN controls "

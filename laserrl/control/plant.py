@@ -31,6 +31,7 @@ from tensordict import TensorDict
 
 from laserrl.envs.actions import hold_action
 from laserrl.envs.factory import make_env
+from laserrl.envs.laser_env import reset_at
 from laserrl.envs.step import wrap_angle
 
 
@@ -95,15 +96,9 @@ class CavityPlant:
         """Fresh initial fields at these angles (B, 4) and K (B,); returns the observation."""
         td = TensorDict(init_angles=torch.deg2rad(angles_deg.to(torch.float64)), init_K=K.to(torch.float64),
                         batch_size=[self.num_cavities])
-        self.obs = self.env.reset(td)
-        self.commanded = self.env.angles_deg().to(torch.float64)
-        return self._read_back(self.obs)
-
-    def _read_back(self, obs: TensorDict) -> TensorDict:
-        """The observation with the plates' angles as the controllers know them (their commands)."""
-        if not self.plates.exact:
-            obs["angles"] = torch.deg2rad(self.commanded).to(obs["angles"].dtype)
-        return obs
+        self.obs = reset_at(self.env, td)
+        self.commanded = self.true_angles_deg
+        return self.obs
 
     def set_K(self, K: torch.Tensor) -> None:
         self.env.set_K(K)
@@ -114,12 +109,12 @@ class CavityPlant:
         command = _wrap_deg(angles_deg.to(torch.float64).to(self.env.device))
         if self.plates.exact:
             self.env.set_angles(torch.deg2rad(command))
-        else:
+        else:  # the observations show the commands, as the controllers read them back
             where = self.plates.follow(self.true_angles_deg, command, self.commanded, self._plate_rng)
-            self.env.set_angles(torch.deg2rad(where))
+            self.env.set_angles(torch.deg2rad(where), reported=torch.deg2rad(command))
         self.commanded = command
         td = self.env.step(self.obs.exclude("done", "terminated", "truncated").set("action", self._hold))
-        self.obs = self._read_back(td["next"].exclude("done", "terminated", "truncated"))
+        self.obs = td["next"].exclude("done", "terminated", "truncated")
         return self.obs
 
     @property

@@ -27,7 +27,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import hold_action, num_actions
-from laserrl.envs.step import CavityState, StepNumerics, drift_K, observe, observe_measured, step, wrap_angle
+from laserrl.envs.step import (CavityState, StepNumerics, apply_action, drift_K, observe, observe_measured, step,
+                               wrap_angle)
 from laserrl.physics.instruments import Instruments, spectrum_matrix
 from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
@@ -246,6 +247,8 @@ class LaserCavityEnv(EnvBase):
                 raise ValueError(f"instruments.{err}") from None
             self._osa = spectrum_matrix(self.params, self.task.instruments, dtype=self._rdtype, device=dev)
         self._pending: CavityState | None = None  # a saved state the next full reset continues (continue_from)
+        self._start: TensorDictBase | None = None  # init_angles / init_K for the next reset (reset_at)
+        self._reported: torch.Tensor | None = None  # (B, 4) angles the observation shows instead of the true ones
         self.state = CavityState(
             u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
             angles=torch.zeros(B, 4, dtype=torch.float64, device=dev), K=torch.zeros(B, dtype=torch.float64, device=dev),
@@ -286,6 +289,8 @@ class LaserCavityEnv(EnvBase):
             seen["r_measured"] = r_measured.to(torch.float32).unsqueeze(-1)
         else:
             seen = observe(self.state)
+        if self._reported is not None:  # a controller's read-back of its commands (set_angles(..., reported=))
+            seen["angles"] = self._reported.to(torch.float32)
         return TensorDict(
             **seen,
             r=r.to(torch.float32).unsqueeze(-1),
@@ -318,11 +323,14 @@ class LaserCavityEnv(EnvBase):
             self.state, self._pending = self._pending, None
             return self._reset_output()
         u, v, angles, K = self._sample_initial()
-        # explicit initial state for evaluation protocols: (B, 4) radians / (B,) K
-        if tensordict is not None and "init_angles" in tensordict.keys():
-            angles = wrap_angle(tensordict.get("init_angles").to(device=self.device, dtype=torch.float64).reshape(angles.shape))
-        if tensordict is not None and "init_K" in tensordict.keys():
-            K = tensordict.get("init_K").to(device=self.device, dtype=torch.float64).reshape(K.shape)
+        self._reported = None
+        # explicit initial state for evaluation protocols: (B, 4) radians / (B,) K, in the input or from reset_at
+        start = tensordict if tensordict is not None and ("init_angles" in tensordict.keys() or "init_K" in tensordict.keys()) \
+            else self._start
+        if start is not None and "init_angles" in start.keys():
+            angles = wrap_angle(start.get("init_angles").to(device=self.device, dtype=torch.float64).reshape(angles.shape))
+        if start is not None and "init_K" in start.keys():
+            K = start.get("init_K").to(device=self.device, dtype=torch.float64).reshape(K.shape)
         fresh = CavityState(u=u, v=v, angles=angles, K=K, step_count=torch.zeros_like(self.state.step_count),
                             batch_size=self.batch_size, device=self.device)
         # sync-free partial reset: sample for all, keep where the mask is set
@@ -342,6 +350,8 @@ class LaserCavityEnv(EnvBase):
         t = self.task
         if t.K_drift or t.K_jump:  # K for this step
             self.state.K = drift_K(self.state.K, t.K[0], t.K[1], t.K_drift, t.K_jump, self._rng)
+        if self._reported is not None:  # the read-back moves with the action as the plates do
+            self._reported = apply_action(self._reported, action, self._steps, self._ctrl_idx)
         self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
         out = self._observation(measured.r, measured.round_trips)
         # the training reward: r, or with measured observations the readings' r_measured
@@ -402,13 +412,22 @@ class LaserCavityEnv(EnvBase):
             raise ValueError(f"K must be finite with shape {tuple(self.batch_size)}, got {tuple(K.shape)}")
         self.state.K = K.clone()
 
-    def set_angles(self, angles) -> None:
+    def set_angles(self, angles, reported=None) -> None:
         """Set all four angles of every cavity, (B, 4) radians (wrapped to [-pi/2, pi/2)):
-        continuous commands of other controllers (``laserrl.control``) between steps."""
-        angles = torch.as_tensor(angles, dtype=torch.float64, device=self.device)
-        if angles.shape != (*self.batch_size, 4) or not bool(torch.isfinite(angles).all()):
-            raise ValueError(f"angles must be finite with shape {(*self.batch_size, 4)}, got {tuple(angles.shape)}")
-        self.state.angles = wrap_angle(angles.clone())
+        continuous commands of other controllers (``laserrl.control``) between steps. With
+        ``reported`` (B, 4) radians, the observations show those angles (what a controller
+        commanded and reads back) instead of where the plates are, until the next reset."""
+        checked = []
+        for name, value in (("angles", angles), ("reported", reported)):
+            if value is None:
+                checked.append(None)
+                continue
+            value = torch.as_tensor(value, dtype=torch.float64, device=self.device)
+            if value.shape != (*self.batch_size, 4) or not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{name} must be finite with shape {(*self.batch_size, 4)}, got {tuple(value.shape)}")
+            checked.append(wrap_angle(value.clone()))
+        self.state.angles = checked[0]
+        self._reported = checked[1]
 
     def fields(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Current complex fields (u, v), (B, n)."""
@@ -416,3 +435,18 @@ class LaserCavityEnv(EnvBase):
 
     def angles_deg(self) -> torch.Tensor:
         return torch.rad2deg(self.state.angles)
+
+
+def reset_at(env, start: TensorDictBase) -> TensorDictBase:
+    """``env.reset(start)`` that brings ``init_angles`` (B, 4) radians and ``init_K`` (B,) to the
+    cavities through any transforms around the ``LaserCavityEnv``: TorchRL's ``TransformedEnv``
+    passes on only the reset and state keys of its input, so the start is handed to the base env
+    for this reset, and the transforms (e.g. the stacked history) reset with it."""
+    base = getattr(env, "base_env", env)
+    if base is env:
+        return env.reset(start)
+    base._start = start.select("init_angles", "init_K", strict=False)
+    try:
+        return env.reset(start.exclude("init_angles", "init_K"))
+    finally:
+        base._start = None

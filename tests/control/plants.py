@@ -52,6 +52,8 @@ class BumpPlant:
     def angles_deg(self):
         return self._angles.clone()
 
+    true_angles_deg = angles_deg  # exact plates
+
     @property
     def r(self):
         return self.obs["r"].squeeze(-1).double()

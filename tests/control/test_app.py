@@ -130,17 +130,27 @@ def test_entry_point_runs_every_controller(checkpoint, tmp_path):
     assert all(f"| {n} |" in table for n in ALL)
 
 
-def test_a_model_that_stacks_readings_is_refused(checkpoint, tmp_path):
-    import json
-    import shutil
+def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
+    """A model reading instruments with a stacked history runs in laserrl-control: the cavities
+    start where the scenario says (through the history transform), every controller reads the
+    instruments' reward, and with backlash the plates' true angles differ from the commands."""
+    from laserrl.train import train
 
-    stacked = tmp_path / "stacked"
-    shutil.copytree(checkpoint, stacked)
-    meta = json.loads((stacked / "model.json").read_text())
-    meta["config"]["env"].update(observation="measured", history=3)
-    (stacked / "model.json").write_text(json.dumps(meta))
-    with pytest.raises(ValueError, match=r"reads the last 3 readings at once \(env.history\)"):
-        _run(["controller=rl", f"checkpoint={stacked}"], tmp_path / "run")
+    model = tmp_path / "dqn"
+    readings = ["env.observation=measured", "env.history=3", "env.instruments.spectrum_span=6",
+                "env.instruments.spectrum_bins=16", "env.instruments.autocorrelation_points=16"]
+    train(_compose(["experiment=smoke", *SMOKE_PHYSICS[:2], *readings, f"run_dir={model}", "train.progress=false",
+                    "eval.plots=false"], name="config"))
+    cfg = _compose(["controller=all", "scenario=drift_jumps", f"checkpoint={model}", "num_cavities=2", "scenario.steps=4",
+                    "scenario.jumps.times=[2]", "compile=false", "plots=false", "progress=false", f"run_dir={tmp_path / 'run'}",
+                    "plates.backlash_deg=1.0", "plates.noise_deg=0.2", "scenario.init_angles_deg.alpha1=60.0"])
+    out = run_control(cfg)
+    assert out["plates"] == {"noise_deg": 0.2, "backlash_deg": 1.0}
+    starts = out["init_angles_deg"]
+    for name in ALL:
+        first = out["traces"][name]["angles_deg"][0][0][0]  # alpha1 after the first step, true angle
+        assert starts[0][0] == 60.0 and abs(first - 60.0) < 15, (name, first)  # the scenario's start, not the training's
+    assert all(0.0 <= out["results"][n]["summary"]["frac_locked"]["mean"] <= 1.0 for n in ALL)
 
 
 def test_sweep_metric(tmp_path):

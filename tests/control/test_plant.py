@@ -95,3 +95,18 @@ def test_controllers_read_the_instruments_reward_when_measured():
     obs = plant.step(start)
     assert np.allclose(observed_r(obs), obs["r_measured"].reshape(-1).numpy())
     assert not np.allclose(observed_r(obs), plant.r.numpy())  # its own scale, not the paper's r
+
+
+def test_a_plant_with_stacked_readings_starts_where_it_is_told():
+    env = _env(observation="measured", history=3, instruments={"spectrum_bins": 16, "spectrum_span": 6.0,
+                                                               "autocorrelation_points": 16})
+    plant = CavityPlant(env, ["alpha1", "alpha2", "alpha3", "alpha_p"], 2, steps=3, seed=0, plates=Plates(backlash_deg=2.0))
+    start = torch.tensor([[60.0, 3.0, 28.0, 88.0], [-70.0, 3.0, 28.0, 88.0]], dtype=torch.float64)
+    obs = plant.reset(start, torch.tensor([-0.15, 0.3], dtype=torch.float64))
+    assert torch.allclose(plant.true_angles_deg, start) and torch.allclose(plant.env.state.K, torch.tensor([-0.15, 0.3], dtype=torch.float64))
+    assert obs["angles"].shape == (2, 12)  # three readings of four angles, each the start
+    assert torch.allclose(obs["angles"].double(), torch.deg2rad(start).repeat(1, 3), atol=1e-6)
+    cmd = start + torch.tensor([[0.5, 0, 0, 0], [3.0, 0, 0, 0]], dtype=torch.float64)
+    obs = plant.step(cmd)
+    assert torch.allclose(obs["angles"][:, -4:].double(), torch.deg2rad(cmd), atol=1e-6)  # the newest: the commands
+    assert plant.true_angles_deg[0, 0] == pytest.approx(60.0) and plant.true_angles_deg[1, 0] == pytest.approx(-68.0)
