@@ -134,6 +134,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     if eval_cfg.get("dtype"):
         env_cfg["dtype"] = eval_cfg["dtype"]
     env_cfg["compile"] = bool(eval_cfg.get("compile", env_cfg.get("compile", False)))
+    env_cfg["physics_spread"] = None  # the nominal cavity of the model (or eval.physics): one cavity, known
     mismatch = {k: v for k, v in dict(eval_cfg.get("physics") or {}).items() if v is not None}
     if mismatch:  # a cavity other than the one trained on (laserrl-eval env.physics.g0=...)
         env_cfg["physics"] = {**dict(env_cfg.get("physics") or {}), **mismatch}

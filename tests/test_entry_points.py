@@ -177,6 +177,7 @@ def test_any_k_experiment_trains_one_measured_agent_over_the_K_range(tmp_path):
     meta = json.loads((tmp_path / "01-miso" / "model" / "model.json").read_text())
     assert (meta["observation"], meta["memory"]) == ("measured", {"history": 4})
     assert meta["config"]["stage"]["K"] == [-0.2, 0.4] and meta["config"]["stage"]["K_drift"] > 0
+    assert meta["config"]["env"]["physics_spread"] == 0.1  # trained on cavities within +-10 % of the nominal one
 
 
 def test_transfer_then_bank_generalisation(trained, tmp_path):

@@ -84,7 +84,8 @@ class CavityPlant:
     def __init__(self, env_cfg: Mapping[str, Any], controlled, num_cavities: int, steps: int, seed: int = 0,
                  init_fields: str = "sech", device: str = "cpu", plates: Plates = Plates()):
         stage = {"controlled": list(controlled), "steps_deg": [2.0] * len(controlled), "init_fields": init_fields}
-        self.env = make_env(dict(env_cfg), stage, num_cavities, seed, device=device, centred=False, max_steps=steps)
+        env_cfg = {**dict(env_cfg), "physics_spread": None}  # the cavity the config names, not a training spread
+        self.env = make_env(env_cfg, stage, num_cavities, seed, device=device, centred=False, max_steps=steps)
         self.num_cavities = num_cavities
         self._hold = torch.full((num_cavities,), hold_action(len(controlled)), dtype=torch.int64, device=self.env.device)
         self.obs: TensorDict | None = None

@@ -16,7 +16,7 @@ from laserrl.physics import CavityParams
 TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "K_drift", "K_jump", "init_fields", "sech_amplitude",
              "sech_width", "noise_scale", "max_steps", "move_cost")
 ENV_TASK_KEYS = ("max_round_trips", "min_round_trips", "tol", "dtype", "compile", "observation",
-                 "instruments")  # LaserTask fields set from the env group
+                 "instruments", "physics_spread")  # LaserTask fields set from the env group
 #: (center, scale) of the training reward (r - center) / scale when env.reward_center / reward_scale are null:
 #: the paper's for r (a plane wave about -0.8, a mode-locked pulse about +1), and the same for the measured
 #: reward, whose mode-locked states lie near 0.55 and plane waves near 0.05 (laserrl.analysis.measured)
@@ -35,7 +35,8 @@ def make_task(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], **overri
     kwargs = {k: stage_cfg[k] for k in TASK_KEYS if k in stage_cfg}  # LaserTask takes lists as ranges
     kwargs.update(max_round_trips=env_cfg["max_round_trips"], min_round_trips=min_round_trips(env_cfg),
                   tol=env_cfg.get("tol"), dtype=env_cfg["dtype"], compile=env_cfg["compile"],
-                  observation=env_cfg.get("observation", "fields"), instruments=env_cfg.get("instruments"))
+                  observation=env_cfg.get("observation", "fields"), instruments=env_cfg.get("instruments"),
+                  physics_spread=env_cfg.get("physics_spread"))
     kwargs.update(overrides)
     try:
         return LaserTask(**kwargs)

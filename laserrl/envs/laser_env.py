@@ -27,8 +27,9 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import hold_action, num_actions
-from laserrl.envs.step import (CavityState, StepNumerics, apply_action, drift_K, observe, observe_measured, step,
-                               wrap_angle)
+from laserrl.envs.step import (CavityState, StepNumerics, apply_action, draw_cavities, drift_K, observe,
+                               observe_measured, step, wrap_angle)
+from laserrl.physics.checks import CAVITY_KEYS
 from laserrl.physics.instruments import Instruments, spectrum_matrix
 from laserrl.physics.run import CONVERGENCE_FLOOR
 from laserrl.physics import CavityParams, noise_fields, reward_terms, sech_fields
@@ -66,6 +67,23 @@ def _sequence(value, name: str) -> tuple:
     if isinstance(value, str) or not isinstance(value, Sequence):
         raise ValueError(f"{name} must be a list, got {value!r}")
     return tuple(value)
+
+
+def _spread(value) -> tuple[float, ...] | None:
+    """``physics_spread`` as one fraction in [0, 0.5] per parameter of ``CAVITY_KEYS``, or None."""
+    if value is None:
+        return None
+    if isinstance(value, Mapping):
+        unknown = set(value) - set(CAVITY_KEYS)
+        if unknown:
+            raise ValueError(f"physics_spread: unknown parameter(s) {sorted(unknown)}; choose from {list(CAVITY_KEYS)}")
+        fractions = [value.get(k, 0.0) for k in CAVITY_KEYS]
+    else:
+        fractions = [value] * len(CAVITY_KEYS)
+    for k, f in zip(CAVITY_KEYS, fractions):
+        if not 0 <= finite_number(f, f"physics_spread.{k}") <= 0.5:
+            raise ValueError(f"physics_spread.{k} must be a fraction in [0, 0.5], got {f!r}")
+    return tuple(float(f) for f in fractions) if any(fractions) else None
 
 
 def policy_keys(task: "LaserTask") -> tuple[str, ...]:
@@ -114,6 +132,9 @@ class LaserTask:
     # ``instruments``, laserrl.physics.instruments; the training reward is then theirs too)
     observation: str = "fields"
     instruments: Instruments | Mapping | None = None  # settings of the instruments (None: their defaults)
+    # cavities other than the nominal one: at every reset each cavity draws D, E0, tau, g0, Gamma uniformly
+    # within +- this fraction of the physics' value (one number for all, or {name: fraction}); None: all nominal
+    physics_spread: float | Mapping | None = None
 
     def __post_init__(self):
         self.controlled = _sequence(self.controlled, "controlled")
@@ -177,6 +198,7 @@ class LaserTask:
             self.instruments = Instruments()
         elif not isinstance(self.instruments, Instruments):
             raise ValueError(f"instruments must map instrument settings to values, got {self.instruments!r}")
+        self.physics_spread = _spread(self.physics_spread)
         if self.tol is None:
             self.tol = max(1e-6, CONVERGENCE_FLOOR[_DTYPES[self.dtype]])
         if finite_number(self.tol, "tol") < 0:
@@ -252,7 +274,8 @@ class LaserCavityEnv(EnvBase):
         self.state = CavityState(
             u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
             angles=torch.zeros(B, 4, dtype=torch.float64, device=dev), K=torch.zeros(B, dtype=torch.float64, device=dev),
-            step_count=torch.zeros(B, dtype=torch.int64, device=dev), batch_size=[B], device=dev)
+            step_count=torch.zeros(B, dtype=torch.int64, device=dev), batch_size=[B], device=dev,
+            cavity=None if self.task.physics_spread is None else draw_cavities(self.params, (0.0,) * 5, B, device=dev))
         self._make_specs()
 
     # ------------------------------------------------------------------ specs
@@ -331,8 +354,10 @@ class LaserCavityEnv(EnvBase):
             angles = wrap_angle(start.get("init_angles").to(device=self.device, dtype=torch.float64).reshape(angles.shape))
         if start is not None and "init_K" in start.keys():
             K = start.get("init_K").to(device=self.device, dtype=torch.float64).reshape(K.shape)
+        cavity = None if self.task.physics_spread is None else \
+            draw_cavities(self.params, self.task.physics_spread, self.batch_size[0], self._rng, device=self.device)
         fresh = CavityState(u=u, v=v, angles=angles, K=K, step_count=torch.zeros_like(self.state.step_count),
-                            batch_size=self.batch_size, device=self.device)
+                            cavity=cavity, batch_size=self.batch_size, device=self.device)
         # sync-free partial reset: sample for all, keep where the mask is set
         self.state = fresh if mask is None else fresh.where(mask, self.state)
         return self._reset_output()
@@ -375,7 +400,7 @@ class LaserCavityEnv(EnvBase):
         """The cavities' state and the env's generator, as plain tensors (for a run's checkpoint)."""
         st = self.state
         return {"state": {"u": st.u.clone(), "v": st.v.clone(), "angles": st.angles.clone(), "K": st.K.clone(),
-                          "step_count": st.step_count.clone()},
+                          "step_count": st.step_count.clone(), **({} if st.cavity is None else {"cavity": st.cavity.clone()})},
                 "rng": self._rng.get_state()}
 
     def continue_from(self, snapshot: Mapping) -> None:
@@ -386,6 +411,8 @@ class LaserCavityEnv(EnvBase):
             like = {"u": (self.state.u, (*self.batch_size, self.params.n)), "v": (self.state.v, (*self.batch_size, self.params.n)),
                     "angles": (self.state.angles, (*self.batch_size, 4)), "K": (self.state.K, tuple(self.batch_size)),
                     "step_count": (self.state.step_count, tuple(self.batch_size))}
+            if self.state.cavity is not None:
+                like["cavity"] = (self.state.cavity, (*self.batch_size, 5))
             values = {}
             for key, (ref, shape) in like.items():
                 value = saved[key]

@@ -25,12 +25,14 @@ from __future__ import annotations
 import math
 import numbers
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from tensordict import tensorclass
 
 from laserrl.envs.actions import action_to_deltas
 from laserrl.physics import CavityParams, NonFiniteFieldError, reward_terms, run_to_convergence
+from laserrl.physics.checks import CAVITY_KEYS
 from laserrl.physics.instruments import Instruments, measure, measured_reward
 
 __all__ = ["CavityState", "StepNumerics", "StepOutput", "apply_action", "drift_K", "observe", "observe_measured",
@@ -79,13 +81,16 @@ class StepNumerics:
 class CavityState:
     """The batched state of B cavities: complex fields ``u``, ``v`` (B, n), the four plate
     angles (B, 4) in radians (alpha1, alpha2, alpha3, alpha_p), the birefringence ``K`` (B,)
-    and the agent steps taken in the episode, ``step_count`` (B,)."""
+    and the agent steps taken in the episode, ``step_count`` (B,); ``cavity`` (B, 5): each
+    cavity's own D, E0, tau, g0, Gamma (``laserrl.physics.checks.CAVITY_KEYS``), or None when
+    every cavity is the nominal one of ``CavityParams``."""
 
     u: torch.Tensor
     v: torch.Tensor
     angles: torch.Tensor
     K: torch.Tensor
     step_count: torch.Tensor
+    cavity: torch.Tensor | None = None
 
 
 @tensorclass
@@ -108,7 +113,8 @@ def step_cavity(state: CavityState, angles: torch.Tensor, params: CavityParams,
     try:
         result = run_to_convergence(state.u, state.v, angles, state.K, params, tol=numerics.tol,
                                     max_round_trips=numerics.max_round_trips,
-                                    min_round_trips=numerics.min_round_trips, compile=numerics.compile)
+                                    min_round_trips=numerics.min_round_trips, compile=numerics.compile,
+                                    cavity=state.cavity)
     except NonFiniteFieldError as err:
         i = err.cavities[0]
         raise NonFiniteFieldError(
@@ -117,9 +123,21 @@ def step_cavity(state: CavityState, angles: torch.Tensor, params: CavityParams,
         ) from None
     r = reward_terms(result.u, result.v, params)[2]
     new = CavityState(u=result.u, v=result.v, angles=angles, K=state.K, step_count=state.step_count + 1,
-                      batch_size=state.batch_size)
+                      cavity=state.cavity, batch_size=state.batch_size)
     return new, StepOutput(r=r, round_trips=result.round_trips, converged=result.converged,
                            batch_size=state.batch_size)
+
+
+def draw_cavities(params: CavityParams, spread: Sequence[float], batch: int, generator: torch.Generator | None = None,
+                  device=None) -> torch.Tensor:
+    """(batch, 5) per-cavity D, E0, tau, g0, Gamma, each drawn uniformly within +-``spread`` (one
+    fraction per parameter, ``CAVITY_KEYS`` order) of ``params``' value: cavities other than the
+    nominal one, for training a controller that does not rely on the model being exact."""
+    nominal = torch.tensor([float(getattr(params, k)) for k in CAVITY_KEYS], dtype=torch.float64)
+    frac = torch.tensor([float(f) for f in spread], dtype=torch.float64)
+    where = generator.device if generator is not None else "cpu"
+    uni = torch.rand((batch, len(CAVITY_KEYS)), generator=generator, dtype=torch.float64, device=where).cpu()
+    return (nominal * (1.0 + frac * (2.0 * uni - 1.0))).to(device)
 
 
 def drift_K(K: torch.Tensor, low: float, high: float, sigma: float, jump_prob: float,

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from laserrl.physics.checks import _real_dtype, as_batch, check_fields
+from laserrl.physics.checks import _real_dtype, as_batch, check_cavity, check_fields
 from laserrl.physics.dop853 import _STAGES, _stepper
 from laserrl.physics.jones import apply_jones, cavity_jones
 from laserrl.physics.params import CavityParams
@@ -25,10 +25,11 @@ from laserrl.physics.params import CavityParams
 __all__ = ["propagate", "round_trip", "fft_pairs_per_round_trip"]
 
 
-def _propagate_fixed(u, v, K: torch.Tensor, params: CavityParams, compile: bool):
+def _propagate_fixed(u, v, K: torch.Tensor, params: CavityParams, compile: bool, cavity: torch.Tensor | None = None):
     """Fixed-step propagation; returns (u, v, error) with the integrator's error estimate."""
     step = _stepper(params, _real_dtype(u.dtype), u.device, bool(compile))
-    w, error = step(torch.fft.fft(torch.stack([u, v], dim=-2)), K)
+    w = torch.fft.fft(torch.stack([u, v], dim=-2))
+    w, error = step(w, K) if cavity is None else step(w, K, cavity=cavity)
     x = torch.fft.ifft(w)
     return x[:, 0], x[:, 1], error
 
@@ -53,7 +54,7 @@ REFINE_ERROR = {"split": 0.05, "dop853": 1e-3}
 
 
 def propagate(u: torch.Tensor, v: torch.Tensor, K, params: CavityParams, *, compile: bool = False,
-              refine: bool = True, max_refinements: int = 3):
+              refine: bool = True, max_refinements: int = 3, cavity: torch.Tensor | None = None):
     """Propagate a batch of fields over z in [0, Z] (no Jones matrices).
 
     Args:
@@ -66,16 +67,20 @@ def propagate(u: torch.Tensor, v: torch.Tensor, K, params: CavityParams, *, comp
         refine: redo cavities whose error estimate exceeds ``REFINE_ERROR`` (or
             that came out non-finite) with 4x finer steps, up to ``max_refinements`` times.
             Costs one host synchronisation.
+        cavity: None (every cavity is ``params``'), or (B, 5) per-cavity values of D, E0, tau,
+            g0, Gamma (``check_cavity``); needs ``integrator="split"``.
     Returns:
         (u, v) at z = Z.
     """
     check_fields(u, v, params)
-    return _propagate(u, v, as_batch(K, u.shape[0], "K", u), params, compile, refine, max_refinements)
+    cavity = check_cavity(cavity, u.shape[0], params)
+    return _propagate(u, v, as_batch(K, u.shape[0], "K", u), params, compile, refine, max_refinements, cavity)
 
 
-def _propagate(u, v, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool, max_refinements: int = 3):
-    """``propagate`` of fields and (B,) K that are already checked."""
-    u_out, v_out, error = _propagate_fixed(u, v, K, params, compile)
+def _propagate(u, v, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool, max_refinements: int = 3,
+               cavity: torch.Tensor | None = None):
+    """``propagate`` of fields, (B,) K and per-cavity values that are already checked."""
+    u_out, v_out, error = _propagate_fixed(u, v, K, params, compile, cavity)
     if not refine:
         return u_out, v_out
     for level in range(1, max_refinements + 1):
@@ -87,14 +92,15 @@ def _propagate(u, v, K: torch.Tensor, params: CavityParams, compile: bool, refin
         # the split-step graphs take the step counts as an argument, so the compiled ones serve
         # the refinement too (eager, its 4x steps cost seconds a round trip at the four-controller
         # start); DOP853 would compile a new graph per step count, so it refines eagerly
-        u_b, v_b, err_b = _propagate_fixed(u[idx], v[idx], K[idx], finer, compile and params.integrator == "split")
+        u_b, v_b, err_b = _propagate_fixed(u[idx], v[idx], K[idx], finer, compile and params.integrator == "split",
+                                           None if cavity is None else cavity[idx])
         u_out, v_out, error = u_out.clone(), v_out.clone(), error.clone()
         u_out[idx], v_out[idx], error[idx] = u_b, v_b, err_b
     return u_out, v_out
 
 
 def round_trip(u: torch.Tensor, v: torch.Tensor, angles: torch.Tensor, K, params: CavityParams, *,
-               compile: bool = False, refine: bool = True):
+               compile: bool = False, refine: bool = True, cavity: torch.Tensor | None = None):
     """One cavity round trip: propagate over z in [0, Z], then apply J1 JP J2 J3.
 
     Args:
@@ -102,16 +108,18 @@ def round_trip(u: torch.Tensor, v: torch.Tensor, angles: torch.Tensor, K, params
         angles: (B, 4) radians, order (alpha1, alpha2, alpha3, alpha_p).
         K: (B,) birefringence (or a scalar).
         params: cavity parameters.
-        compile, refine: see ``propagate``.
+        compile, refine, cavity: see ``propagate``.
     Returns:
         (u, v) after the round trip, same shape and dtype.
     """
     check_fields(u, v, params)
     angles = as_batch(angles, u.shape[0], "angles", u, width=4)
-    return _round_trip(u, v, angles, as_batch(K, u.shape[0], "K", u), params, compile, refine)
+    cavity = check_cavity(cavity, u.shape[0], params)
+    return _round_trip(u, v, angles, as_batch(K, u.shape[0], "K", u), params, compile, refine, cavity)
 
 
-def _round_trip(u, v, angles: torch.Tensor, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool):
-    """``round_trip`` of fields, (B, 4) angles and (B,) K that are already checked."""
-    u, v = _propagate(u, v, K, params, compile, refine)
+def _round_trip(u, v, angles: torch.Tensor, K: torch.Tensor, params: CavityParams, compile: bool, refine: bool,
+                cavity: torch.Tensor | None = None):
+    """``round_trip`` of fields, (B, 4) angles, (B,) K and per-cavity values that are already checked."""
+    u, v = _propagate(u, v, K, params, compile, refine, cavity=cavity)
     return apply_jones(cavity_jones(angles, u.dtype), u, v)

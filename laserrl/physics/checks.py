@@ -14,7 +14,12 @@ import torch
 
 from laserrl.physics.params import CavityParams
 
-__all__ = ["check_fields", "check_finite", "as_batch", "NonFiniteFieldError", "MAX_PEAK_POWER"]
+__all__ = ["check_fields", "check_finite", "check_cavity", "as_batch", "NonFiniteFieldError", "MAX_PEAK_POWER",
+           "CAVITY_KEYS"]
+
+#: The columns of per-cavity parameters ``cavity`` (B, 5): cavities of one batch that differ
+#: from ``CavityParams`` in these (the others, and the grid, are shared).
+CAVITY_KEYS = ("D", "E0", "tau", "g0", "Gamma")
 
 
 def _real_dtype(dtype: torch.dtype) -> torch.dtype:
@@ -101,3 +106,30 @@ def as_batch(x, batch: int, name: str, like: torch.Tensor, width: int | None = N
         rows = bad.nonzero().flatten().tolist()
         raise ValueError(f"{name} of {_cavities(rows)} must be finite, got {x[rows[0]].tolist()}")
     return x
+
+
+def check_cavity(cavity, batch: int, params: CavityParams) -> torch.Tensor | None:
+    """None, or ``cavity`` as a (batch, 5) float64 tensor of per-cavity D, E0, tau, g0, Gamma
+    (``CAVITY_KEYS``) within the limits ``CavityParams`` sets; an error names the parameter and
+    the cavities. Needs ``params.integrator == "split"``."""
+    if cavity is None:
+        return None
+    if params.integrator != "split":
+        raise ValueError(f"per-cavity parameters need integrator='split', got {params.integrator!r}")
+    cavity = torch.as_tensor(cavity)
+    if cavity.shape != (batch, len(CAVITY_KEYS)) or cavity.is_complex():
+        raise ValueError(f"cavity must be real with shape ({batch}, {len(CAVITY_KEYS)}) ({', '.join(CAVITY_KEYS)}), "
+                         f"got {tuple(cavity.shape)} {cavity.dtype}")
+    cavity = cavity.to(torch.float64)
+    lows = {"E0": (0.0, True), "tau": (0.0, False), "g0": (0.0, False), "Gamma": (0.0, False)}
+    for j, name in enumerate(CAVITY_KEYS):
+        col = cavity[:, j]
+        bad = ~torch.isfinite(col)
+        if name in lows:
+            low, strict = lows[name]
+            bad |= (col <= low) if strict else (col < low)
+        if bool(bad.any()):
+            rows = bad.nonzero().flatten().tolist()
+            raise ValueError(f"cavity.{name} must be finite{' and > 0' if name == 'E0' else '' if name == 'D' else ' and >= 0'}, "
+                             f"got {col[bad].tolist()} for {_cavities(rows)}")
+    return cavity

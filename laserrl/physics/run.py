@@ -8,7 +8,7 @@ import warnings
 import torch
 
 from laserrl.physics.cavity import _round_trip
-from laserrl.physics.checks import NonFiniteFieldError, as_batch, check_fields, check_finite
+from laserrl.physics.checks import NonFiniteFieldError, as_batch, check_cavity, check_fields, check_finite
 from laserrl.physics.observables import convergence
 from laserrl.physics.params import CavityParams
 
@@ -48,7 +48,7 @@ class ConvergenceResult:
 
 def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e-6, max_round_trips: int = 500,
                        min_round_trips: int = 1, active: torch.Tensor | None = None,
-                       compile: bool = False) -> ConvergenceResult:
+                       compile: bool = False, cavity: torch.Tensor | None = None) -> ConvergenceResult:
     """Round trips until norm(phi_j - phi_{j-1}) / norm(phi_{j-1}) < tol, per cavity,
     but at least ``min_round_trips`` (1: the paper's rule, which may stop after the first).
 
@@ -64,6 +64,7 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
         tol: convergence tolerance (paper: 1e-6).  max_round_trips: cap (paper: 500).
         min_round_trips: round trips before the stopping test may end a cavity's run.
         active: optional (B,) bool mask of cavities to run; others are returned unchanged.
+        cavity: optional (B, 5) per-cavity D, E0, tau, g0, Gamma (``laserrl.physics.checks.check_cavity``).
     Returns:
         ConvergenceResult with the final fields and the round trips each cavity used.
     Raises:
@@ -81,6 +82,7 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
     batch = u.shape[0]
     angles = as_batch(angles, batch, "angles", u, width=4)
     K = as_batch(K, batch, "K", u)
+    cavity = check_cavity(cavity, batch, params)
     u, v = u.clone(), v.clone()
     count = torch.zeros(batch, dtype=torch.int64, device=u.device)
     change = torch.full((batch,), float("inf"), dtype=angles.dtype, device=u.device)
@@ -92,7 +94,8 @@ def run_to_convergence(u, v, angles, K, params: CavityParams, *, tol: float = 1e
             break
         u_old, v_old = u[idx], v[idx]
         # inputs were checked above and every output is checked here, so the loop skips round_trip's own checks
-        u_new, v_new = _round_trip(u_old, v_old, angles[idx], K[idx], params, compile, True)
+        u_new, v_new = _round_trip(u_old, v_old, angles[idx], K[idx], params, compile, True,
+                                   None if cavity is None else cavity[idx])
         check_finite(u_new, v_new, " during a round trip", index=idx)
         delta = convergence(u_new, v_new, u_old, v_old)
         u[idx], v[idx] = u_new, v_new

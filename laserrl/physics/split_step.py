@@ -41,6 +41,11 @@ flow. (Lower-order rules for G, or freezing the end-point share of the energy, c
 3-10x in accuracy on the reference cases: E changes by tens of percent per round trip.)
 The birefringence K is a phase in this exact flow; it is not split from anything.
 
+Cavities of one batch may differ in D, E0, tau, g0 and Gamma (``cavity``, (B, 5) in the order
+``CAVITY_KEYS``, for training on cavities other than the nominal one): then the dispersion
+tables, the gain filter S and the gain's constants are per cavity, and every formula above
+holds cavity by cavity.
+
 Kerr flow N(s), exact pointwise: for A + B = 1 (an isotropic Kerr medium; silica's
 A = 2/3, B = 1/3) the circular components a = u + i v, b = u - i v only change phase,
 
@@ -61,6 +66,7 @@ mode-locked pulses without also flagging a fifth or more of those.
 from __future__ import annotations
 
 import functools
+import math
 
 import torch
 
@@ -73,6 +79,7 @@ from laserrl.physics.params import CavityParams
 #: White noise holds 0.43-0.51 there at the default resolution, fields a round trip old at
 #: most 2e-4; 1e-3 of white noise adds about 1e-6 to the error.
 UNRESOLVED_POWER = 1e-3
+
 
 
 class _SplitStep:
@@ -131,27 +138,46 @@ class _SplitStep:
             return _unpack_bits(fft_bits(state[0], inverse))
         return fft_planar(*state, inverse)
 
-    def _table(self, s: float) -> tuple[torch.Tensor, torch.Tensor]:
+    def _table(self, s: float, disp: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The length s as a 0-d tensor, and a (6, n) table for a linear flow over s:
         cos, sin of the dispersion phase over s, then the inverse-DFT rows (with ifft's
         1/n) of the end samples t_0 and t_{n-1} rotated by that phase, as (re, im).
         Precomputed on the host: inside the graph Inductor would recompute these
-        transcendentals for every cavity."""
-        if s not in self._tables:
-            disp = self.disp  # float64
-            rotation = torch.exp(1j * s * disp) / self.p.n
-            j = torch.arange(self.p.n, dtype=torch.float64)
-            first, last = rotation, rotation * torch.exp(-2j * torch.pi * j / self.p.n)
-            table = torch.stack([torch.cos(s * disp), torch.sin(s * disp), first.real, first.imag,
-                                 last.real, last.imag])
-            self._tables[s] = (torch.tensor(s, **self.as_dev), table.to(**self.as_dev))
-        return self._tables[s]
+        transcendentals for every cavity. With per-cavity dispersion ``disp`` (B, n), float64,
+        a (B, 6, n) table (not cached: it follows the cavities of the call)."""
+        if disp is None and s in self._tables:
+            return self._tables[s]
+        own = disp if disp is not None else self.disp  # float64
+        rotation = torch.exp(1j * s * own) / self.p.n
+        j = torch.arange(self.p.n, dtype=torch.float64, device=own.device)
+        first, last = rotation, rotation * torch.exp(-2j * torch.pi * j / self.p.n)
+        table = torch.stack([torch.cos(s * own), torch.sin(s * own), first.real, first.imag,
+                             last.real, last.imag], dim=-2)
+        out = (torch.tensor(s, **self.as_dev), table.to(**self.as_dev))
+        if disp is None:
+            self._tables[s] = out
+        return out
 
-    def _gain_rate(self, Ur, Ui, spectral_power, G, rows, s):
+    def _per_cavity(self, cavity: torch.Tensor):
+        """From per-cavity values (B, 5) (``CAVITY_KEYS``): their dispersion -D k^2 / 2 (B, n),
+        float64, and what the flows take, (gain filter S (B, n), g0, E0, Gamma (B,) each)."""
+        k2 = self.p.wavenumbers(dtype=torch.float64).to(cavity.device) ** 2
+        c = cavity.to(torch.float64)
+        D, E0, tau, g0, Gamma = c.unbind(-1)
+        disp = (-0.5 * D)[:, None] * k2
+        shape = 1.0 - tau[:, None] * k2
+        return disp, tuple(x.to(**self.as_dev) for x in (shape, g0, E0, Gamma))
+
+    def _constants(self, cavity):
+        """(S, g0, E0, Gamma): the nominal cavity's, or the per-cavity tensors of ``_per_cavity``."""
+        return (self.shape, self.p.g0, self.p.E0, self.p.Gamma) if cavity is None else cavity
+
+    def _gain_rate(self, Ur, Ui, spectral_power, G, rows, s, cavity=None):
         """g(E) of the fields u^ exp(i disp s + G S - Gamma s), (B,); K's phase does not change E.
-        rows: (4, n) end-sample rows rotated by the dispersion phase over s."""
+        rows: (4, n) end-sample rows rotated by the dispersion phase over s ((B, 4, n) per cavity)."""
         p = self.p
-        amp = torch.exp(G[:, None] * self.shape)  # (B, n)
+        shape, g0, E0, Gamma = self._constants(cavity)
+        amp = torch.exp(G[:, None] * shape)  # (B, n)
         periodic = (spectral_power * amp.square()).sum(-1) / p.n  # sum_j |u_j|^2 by Parseval
         ends = 0.0
         # |u|^2 + |v|^2 at t_0 and t_{n-1}: every reduction is over the last axis of a (B, n)
@@ -159,28 +185,31 @@ class _SplitStep:
         # emit fewer, larger loop nests than (B, 2) sums
         for f in (0, 1):
             yr, yi = Ur[:, f] * amp, Ui[:, f] * amp
-            for rr, ri in ((rows[0], rows[1]), (rows[2], rows[3])):
+            for rr, ri in ((rows[..., 0, :], rows[..., 1, :]), (rows[..., 2, :], rows[..., 3, :])):
                 er = (yr * rr - yi * ri).sum(-1)
                 ei = (yr * ri + yi * rr).sum(-1)
                 ends = ends + er.square() + ei.square()
-        energy = p.dt * (periodic - 0.5 * ends) * torch.exp(-2.0 * p.Gamma * s)
-        return (2.0 * p.g0) / (1.0 + energy / p.E0)
+        energy = p.dt * (periodic - 0.5 * ends) * torch.exp(-2.0 * Gamma * s)
+        return (2.0 * g0) / (1.0 + energy / E0)
 
-    def linear(self, Ur, Ui, K, s, table, half_table, energy0):
+    def linear(self, Ur, Ui, K, s, table, half_table, energy0, cavity=None):
         """Exact linear flow L(s) of the Fourier-space fields (planar, each (B, 2, n)), returned
         as the carrier.
 
         s: 0-d tensor; table, half_table: ``_table(s)`` and ``_table(s/2)``;
-        energy0: (B,) trapezoid energy at the start of the flow."""
+        energy0: (B,) trapezoid energy at the start of the flow; cavity: None (the nominal
+        cavity) or the per-cavity tensors of ``_per_cavity``."""
+        shape, g0, E0, Gamma = self._constants(cavity)
+        loss = Gamma if cavity is None else Gamma[:, None]
         P = (Ur.square() + Ui.square()).sum(1)  # (B, n)
-        k1 = (2.0 * self.p.g0) / (1.0 + energy0 / self.p.E0)
+        k1 = (2.0 * g0) / (1.0 + energy0 / E0)
         half = 0.5 * s
-        k2 = self._gain_rate(Ur, Ui, P, half * k1, half_table[2:], half)
-        k3 = self._gain_rate(Ur, Ui, P, half * k2, half_table[2:], half)
-        k4 = self._gain_rate(Ur, Ui, P, s * k3, table[2:], s)
+        k2 = self._gain_rate(Ur, Ui, P, half * k1, half_table[..., 2:, :], half, cavity)
+        k3 = self._gain_rate(Ur, Ui, P, half * k2, half_table[..., 2:, :], half, cavity)
+        k4 = self._gain_rate(Ur, Ui, P, s * k3, table[..., 2:, :], s, cavity)
         G = (s / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        amp = torch.exp(G[:, None] * self.shape - self.p.Gamma * s)  # (B, n)
-        dc, ds = table[0], table[1]
+        amp = torch.exp(G[:, None] * shape - loss * s)  # (B, n)
+        dc, ds = table[..., 0, :], table[..., 1, :]
         fields = []
         for f, sign in ((0, -1.0), (1, 1.0)):  # -K s for u, +K s for v
             rot = (sign * s) * K
@@ -190,11 +219,11 @@ class _SplitStep:
             fields.append((ur * c - ui * sn, ur * sn + ui * c))
         return self._carrier(fields)
 
-    def first_linear(self, state, K, s, table, half_table):
+    def first_linear(self, state, K, s, table, half_table, cavity=None):
         """L(s) of carried fields whose time-domain energy is not at hand."""
         xr, xi = self._transform(state, inverse=True)
         energy0 = trapezoid_energy((xr.square() + xi.square()).sum(1), self.p.dt)
-        return self.linear(*self._planar(state), K, s, table, half_table, energy0)
+        return self.linear(*self._planar(state), K, s, table, half_table, energy0, cavity)
 
     def kerr(self, xr, xi, s):
         """Exact Kerr flow N(s) of the time-domain fields (B, 2, n): [(re, im) of u, of v]."""
@@ -211,7 +240,7 @@ class _SplitStep:
         # u = (a + b) / 2, v = -i (a - b) / 2
         return [(0.5 * (ar + br), 0.5 * (ai + bi)), (0.5 * (ai - bi), -0.5 * (ar - br))]
 
-    def stage(self, state, K, h, s_after, table, half_table):
+    def stage(self, state, K, h, s_after, table, half_table, cavity=None):
         """N(h) then L(s_after), from and to the carried Fourier-space fields."""
         xr, xi = self._transform(state, inverse=True)
         # N keeps |u|^2 + |v|^2 pointwise, so the energy after it is the energy before it;
@@ -219,35 +248,42 @@ class _SplitStep:
         # storing N's output for a later pass
         energy0 = trapezoid_energy((xr.square() + xi.square()).sum(1), self.p.dt)
         Ur, Ui = self._transform(self._carrier(self.kerr(xr, xi, h)), inverse=False)
-        return self.linear(Ur, Ui, K, s_after, table, half_table, energy0)
+        return self.linear(Ur, Ui, K, s_after, table, half_table, energy0, cavity)
 
-    def strang(self, state, K, steps: int):
-        """L(h/2) [N(h) L(h)]^(steps-1) N(h) L(h/2) with h = Z / steps: second order."""
+    def strang(self, state, K, steps: int, cavity=None):
+        """L(h/2) [N(h) L(h)]^(steps-1) N(h) L(h/2) with h = Z / steps: second order.
+        cavity: None or the per-cavity (B, 5) values (``CAVITY_KEYS``)."""
         h = self.p.Z / steps
-        full, half, quarter = self._table(h), self._table(h / 2), self._table(h / 4)
-        state = self.first_linear_fn(state, K, half[0], half[1], quarter[1])
+        disp, own = (None, None) if cavity is None else self._per_cavity(cavity)
+        full, half, quarter = self._table(h, disp), self._table(h / 2, disp), self._table(h / 4, disp)
+        if self.compiled and cavity is not None:  # per-cavity inputs follow the batch size too
+            for x in (*own, full[1], half[1], quarter[1]):
+                torch._dynamo.mark_dynamic(x, 0)
+        state = self.first_linear_fn(state, K, half[0], half[1], quarter[1], own)
         for i in range(steps):
             after, after_half = (full, half) if i < steps - 1 else (half, quarter)
-            state = self.stage_fn(state, K, full[0], after[0], after[1], after_half[1])
+            state = self.stage_fn(state, K, full[0], after[0], after[1], after_half[1], own)
         return state
 
-    def _unresolved_share(self, w: torch.Tensor, steps: int):
+    def _unresolved_share(self, w: torch.Tensor, steps: int, D_scale: float = 1.0):
         """(B,) share of the power of the Fourier-space fields w in modes whose dispersion
-        phase over a step Z / steps exceeds pi/2, or None if the grid has no such mode."""
-        if steps not in self._unresolved:
-            phase = self.disp.abs() * (self.p.Z / steps)  # |D| k^2 h / 2
+        phase over a step Z / steps exceeds pi/2, or None if the grid has no such mode.
+        D_scale: the largest |D| of the batch over the nominal one (per-cavity values)."""
+        key = (steps, D_scale)
+        if key not in self._unresolved:
+            phase = self.disp.abs() * D_scale * (self.p.Z / steps)  # |D| k^2 h / 2
             mask = phase > 0.5 * torch.pi
             # one matrix product of the squared (re, im) parts of both fields gives the power
             # in those modes and in all modes (4x faster than abs().square() and two sums)
             cols = torch.stack([mask.repeat_interleave(2).repeat(2), torch.ones(4 * self.p.n, dtype=torch.bool)], 1)
-            self._unresolved[steps] = cols.to(dtype=w.real.dtype, device=w.device) if bool(mask.any()) else None
-        cols = self._unresolved[steps]
+            self._unresolved[key] = cols.to(dtype=w.real.dtype, device=w.device) if bool(mask.any()) else None
+        cols = self._unresolved[key]
         if cols is None:
             return None
         power = torch.view_as_real(w).reshape(w.shape[0], -1).square() @ cols  # (B, 2)
         return power[:, 0] / power[:, 1].clamp_min(torch.finfo(power.dtype).tiny)
 
-    def __call__(self, w: torch.Tensor, K: torch.Tensor, passes: tuple[int, int]):
+    def __call__(self, w: torch.Tensor, K: torch.Tensor, passes: tuple[int, int], cavity: torch.Tensor | None = None):
         """Propagate the Fourier-space fields w (complex, (B, 2, n)) over z in [0, Z].
 
         passes: (N1, N2), the Strang steps of the coarse and the fine pass (N1 < N2).
@@ -255,18 +291,22 @@ class _SplitStep:
         fourth order, and |fine - coarse| / |fine|, an estimate of the second-order
         splitting error that flags unresolved states; it is infinite for fields with more
         than ``UNRESOLVED_POWER`` of their power beyond the coarse pass's resolution.
+        cavity: None (every cavity the nominal one) or per-cavity values (B, 5), ``CAVITY_KEYS``.
         """
         n1, n2 = passes
-        share = self._unresolved_share(w, n1)
+        D_scale = 1.0
+        if cavity is not None:  # rounded up, so that a few distinct masks serve every batch
+            D_scale = max(1.0, math.ceil(float(cavity[:, 0].abs().max()) / abs(self.p.D) * 20) / 20) if self.p.D else 1.0
+        share = self._unresolved_share(w, n1, D_scale)
         state = self._from_complex(w)
         if self.compiled:
             # only the batch size varies (active subsets shrink as cavities converge); n and
             # the stage count stay static so Inductor can vectorise along t
-            for x in (*state, K):
+            for x in (*state, K, *(() if cavity is None else (cavity,))):
                 torch._dynamo.mark_dynamic(x, 0)
         # real views: torch's eager complex arithmetic is slower than real
-        coarse = torch.view_as_real(self._to_complex(self.strang(state, K, n1)))
-        fine = torch.view_as_real(self._to_complex(self.strang(state, K, n2)))
+        coarse = torch.view_as_real(self._to_complex(self.strang(state, K, n1, cavity)))
+        fine = torch.view_as_real(self._to_complex(self.strang(state, K, n2, cavity)))
         diff = fine - coarse
         dims = (-1, -2, -3)
         error = torch.linalg.vector_norm(diff, dim=dims) / torch.linalg.vector_norm(fine, dim=dims).clamp_min(1e-15)
