@@ -15,6 +15,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import RandomPolicy
 
 from laserrl.envs.factory import make_env
+from laserrl.envs.laser_env import reset_at
 from laserrl.train import train
 from laserrl.paths import CONF_DIR
 
@@ -48,7 +49,7 @@ def test_greedy_policy_beats_random_policy(tmp_path, variant):
     env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
                    len(STARTS) * 4, seed=1, centred=False, max_steps=8)
     init = torch.deg2rad(torch.tensor([[a, 3.0, 28.0, 88.0] for a in STARTS] * 4, dtype=torch.float64))
-    td = env.reset(TensorDict(init_angles=init, batch_size=[len(init)]))
+    td = reset_at(env, TensorDict(init_angles=init, batch_size=[len(init)]))  # through a history transform too
     torch.manual_seed(1)
     rollout = env.rollout(8, RandomPolicy(env.action_spec), auto_reset=False, tensordict=td)
     random_final = float(rollout["next", "r"][:, -1].mean())
