@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import functools
 import os
 import platform
 import re
@@ -91,8 +92,10 @@ def machine_line() -> str:
     return f"{cpu_name()}, {os.cpu_count()} cores, torch {torch.__version__}, Python {platform.python_version()}"
 
 
+@functools.lru_cache(maxsize=4)
 def git_commit(where: str | os.PathLike | None = None) -> str | None:
-    """The commit of the laserrl checkout that runs (None for an installed wheel)."""
+    """The commit of the laserrl checkout that runs (None for an installed wheel); read once per
+    process, so that a long run names the code it started with, not later commits to the checkout."""
     import subprocess
 
     where = Path(where or Path(__file__).parent)

@@ -30,7 +30,7 @@ from tqdm import tqdm
 
 from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
 from laserrl.checkpoint import save_json
-from laserrl.model import model_metadata, package_version, save_model, update_model_meta
+from laserrl.model import git_commit, model_metadata, package_version, save_model, update_model_meta
 from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
                             optim_lr_decay)
 from laserrl.envs.factory import make_env
@@ -238,7 +238,7 @@ def model_card(cfg: DictConfig, run: RunCounters) -> dict:
     the code, the machine, the date, frames and training time."""
     import datetime
 
-    from laserrl.model import git_commit, machine_line
+    from laserrl.model import machine_line
 
     try:
         from hydra.core.hydra_config import HydraConfig
@@ -311,6 +311,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     loop = LoopSettings.from_config(cfg)
     run_dir = Path(cfg.run_dir)
     seed_everything(cfg)
+    git_commit()  # the code this process runs: its model card names this commit
     started = time.perf_counter()
 
     # --- the agent, its replay and n-step transform

@@ -206,3 +206,24 @@ def test_warm_starting_from_an_ensemble_is_refused(tmp_path):
     qnet = make_qnet(3, 256, net["channels"], net["kernel_size"], net["pool"], net["hidden"], net["negative_slope"])
     with pytest.raises(Exception, match="is an ensemble of 2 models; warm-start from one of its members"):
         warm_start(qnet, str(ens), ["alpha1"])
+
+
+def test_the_commit_is_read_once_per_process(monkeypatch):
+    """A model card names the commit the run started with, not one made while it trained."""
+    import subprocess
+
+    from laserrl import model
+
+    model.git_commit.cache_clear()
+    calls = []
+    real = subprocess.run
+
+    def counting(*args, **kwargs):
+        calls.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(subprocess, "run", counting)
+    first = model.git_commit()
+    n = len(calls)
+    assert model.git_commit() == first and len(calls) == n
+    model.git_commit.cache_clear()
