@@ -80,6 +80,9 @@ from laserrl.physics.params import CavityParams
 #: most 2e-4; 1e-3 of white noise adds about 1e-6 to the error.
 UNRESOLVED_POWER = 1e-3
 
+#: Compiled graphs per code object that a process may hold (torch._dynamo's recompile_limit).
+RECOMPILE_LIMIT = 64
+
 
 
 class _SplitStep:
@@ -110,6 +113,10 @@ class _SplitStep:
         self.compiled = compiled
         self.first_linear_fn, self.stage_fn = self.first_linear, self.stage
         if compiled:
+            # each cavity (CavityParams), dtype and per-cavity variant is a graph of its own of these two
+            # methods, all counted against one code object: a process that runs several cavities (an
+            # evaluation on other cavities, the report, the tests) needs more than dynamo's default of 8
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
             self.first_linear_fn = torch.compile(self.first_linear, fullgraph=True, dynamic=None)
             self.stage_fn = torch.compile(self.stage, fullgraph=True, dynamic=None)
 
