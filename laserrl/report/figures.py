@@ -221,8 +221,9 @@ def fig5_miso(ctx, path: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ fig. 6
-@figure("fig6_generalisation", "fig. 6", "Generalisation across K: success rate of one model (trained at K = 0.1) "
-        "and of the bank (nearest-K rule, which knows K; highest-Q rule, which does not) at each K of the grid.")
+@figure("fig6_generalisation", "fig. 6", "Generalisation across K: success rate at each K of the grid of one model "
+        "(trained at K = 0.1) and, where a bank is given, of its rules (nearest K, which knows K; highest Q and trial, "
+        "which do not).")
 def fig6_generalisation(ctx, path: Path) -> None:
     if not ctx.has_generalisation:
         from laserrl.report.context import NOT_IN_ZOO
@@ -236,7 +237,7 @@ def fig6_generalisation(ctx, path: Path) -> None:
         "seeking holds it; r, K and the angles over time, next to ESC alone, deep RL alone and the baselines.")
 def fig7_hybrid(ctx, path: Path) -> None:
     """From ``report.results.control`` (a laserrl-control control.json), else a small
-    ``laserrl-control controller=all`` run here with the siso model (``report.control``)."""
+    ``laserrl-control`` run here with the k_base model (``report.control``)."""
     from laserrl.plots import plot_control
 
     plot_control(ctx.control, path, dpi=DPI)
