@@ -64,7 +64,7 @@ def plot_generalisation(result: dict, path: str | Path) -> Path:
         else:
             ax.axvline(K, color="0.8", lw=0.8, zorder=0)
     ax.set(xlabel="birefringence K", ylabel="success rate", ylim=(-0.05, 1.05),
-           title="generalisation across K (grey: K of the bank's models)")
+           title="generalisation across K" + (" (grey: K of the bank's models)" if result.get("bank_K") else ""))
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
