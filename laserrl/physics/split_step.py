@@ -112,6 +112,7 @@ class _SplitStep:
         self.packed = _uses_bits(real_dtype, device, compiled)
         self.compiled = compiled
         self.first_linear_fn, self.stage_fn = self.first_linear, self.stage
+        self.first_linear_cavity_fn, self.stage_cavity_fn = self.first_linear_cavity, self.stage_cavity
         if compiled:
             # each cavity (CavityParams), dtype and per-cavity variant is a graph of its own of these two
             # methods, all counted against one code object: a process that runs several cavities (an
@@ -119,6 +120,10 @@ class _SplitStep:
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
             self.first_linear_fn = torch.compile(self.first_linear, fullgraph=True, dynamic=None)
             self.stage_fn = torch.compile(self.stage, fullgraph=True, dynamic=None)
+            # per-cavity calls get code objects of their own: sharing one with the nominal calls makes
+            # dynamo, when it recompiles, evaluate the other variant's guards on None (a TypeError)
+            self.first_linear_cavity_fn = torch.compile(self.first_linear_cavity, fullgraph=True, dynamic=None)
+            self.stage_cavity_fn = torch.compile(self.stage_cavity, fullgraph=True, dynamic=None)
 
     # --- the carrier of the Fourier-space fields -----------------------------------------
     def _from_complex(self, w: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -232,6 +237,14 @@ class _SplitStep:
         energy0 = trapezoid_energy((xr.square() + xi.square()).sum(1), self.p.dt)
         return self.linear(*self._planar(state), K, s, table, half_table, energy0, cavity)
 
+    def first_linear_cavity(self, state, K, s, table, half_table, cavity):
+        """``first_linear`` with per-cavity constants (compiled on its own)."""
+        return self.first_linear(state, K, s, table, half_table, cavity)
+
+    def stage_cavity(self, state, K, h, s_after, table, half_table, cavity):
+        """``stage`` with per-cavity constants (compiled on its own)."""
+        return self.stage(state, K, h, s_after, table, half_table, cavity)
+
     def kerr(self, xr, xi, s):
         """Exact Kerr flow N(s) of the time-domain fields (B, 2, n): [(re, im) of u, of v]."""
         A, B = self.p.A, self.p.B
@@ -266,10 +279,14 @@ class _SplitStep:
         if self.compiled and cavity is not None:  # per-cavity inputs follow the batch size too
             for x in (*own, full[1], half[1], quarter[1]):
                 torch._dynamo.mark_dynamic(x, 0)
-        state = self.first_linear_fn(state, K, half[0], half[1], quarter[1], own)
+        if cavity is None:
+            first, stage, extra = self.first_linear_fn, self.stage_fn, ()
+        else:
+            first, stage, extra = self.first_linear_cavity_fn, self.stage_cavity_fn, (own,)
+        state = first(state, K, half[0], half[1], quarter[1], *extra)
         for i in range(steps):
             after, after_half = (full, half) if i < steps - 1 else (half, quarter)
-            state = self.stage_fn(state, K, full[0], after[0], after[1], after_half[1], own)
+            state = stage(state, K, full[0], after[0], after[1], after_half[1], *extra)
         return state
 
     def _unresolved_share(self, w: torch.Tensor, steps: int, D_scale: float = 1.0):

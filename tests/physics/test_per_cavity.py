@@ -69,3 +69,20 @@ def test_per_cavity_values_need_the_split_step_and_the_batch_shape():
         propagate(u, v, K, P, cavity=VALUES[:2])
     with pytest.raises(ValueError, match="integrator='split'"):
         propagate(u, v, K, CavityParams.precise(n=64), cavity=VALUES)
+
+
+def test_compiled_calls_with_and_without_per_cavity_values_alternate():
+    """One compiled stepper serves per-cavity batches (training with env.physics_spread) and nominal
+    ones (its validation) in any order and batch size; the nominal results do not depend on it."""
+    from laserrl.envs.step import draw_cavities
+
+    nominal = {}
+    for B, spread in [(4, True), (4, False), (3, True), (2, False), (4, True), (2, False)]:
+        u, v = sech_fields(B, P, 1.0, 1.0, dtype=torch.complex64)
+        K = torch.full((B,), 0.1, dtype=torch.float64)
+        cavity = draw_cavities(P, (0.1,) * 5, B, torch.Generator().manual_seed(B)) if spread else None
+        out, _ = propagate(u, v, K, P, compile=True, cavity=cavity)
+        assert bool(torch.isfinite(torch.view_as_real(out)).all())
+        if not spread:
+            nominal.setdefault(B, out)
+            assert torch.equal(out, nominal[B])
