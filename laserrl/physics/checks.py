@@ -121,15 +121,17 @@ def check_cavity(cavity, batch: int, params: CavityParams) -> torch.Tensor | Non
         raise ValueError(f"cavity must be real with shape ({batch}, {len(CAVITY_KEYS)}) ({', '.join(CAVITY_KEYS)}), "
                          f"got {tuple(cavity.shape)} {cavity.dtype}")
     cavity = cavity.to(torch.float64)
-    lows = {"E0": (0.0, True), "tau": (0.0, False), "g0": (0.0, False), "Gamma": (0.0, False)}
+    # the bounds CavityParams sets: E0 > 0; tau, g0, Gamma >= 0; D any finite value
+    strictly_positive = {"E0": True, "tau": False, "g0": False, "Gamma": False}
     for j, name in enumerate(CAVITY_KEYS):
         col = cavity[:, j]
         bad = ~torch.isfinite(col)
-        if name in lows:
-            low, strict = lows[name]
-            bad |= (col <= low) if strict else (col < low)
+        bound = ""
+        if name in strictly_positive:
+            strict = strictly_positive[name]
+            bad |= (col <= 0) if strict else (col < 0)
+            bound = " and > 0" if strict else " and >= 0"
         if bool(bad.any()):
             rows = bad.nonzero().flatten().tolist()
-            raise ValueError(f"cavity.{name} must be finite{' and > 0' if name == 'E0' else '' if name == 'D' else ' and >= 0'}, "
-                             f"got {col[bad].tolist()} for {_cavities(rows)}")
+            raise ValueError(f"cavity.{name} must be finite{bound}, got {col[bad].tolist()} for {_cavities(rows)}")
     return cavity

@@ -103,9 +103,9 @@ class _SplitStep:
     def __init__(self, params: CavityParams, real_dtype: torch.dtype, device: torch.device, compiled: bool):
         self.p = params
         as_dev = dict(dtype=real_dtype, device=device)
-        k = params.wavenumbers(dtype=torch.float64)
-        self.disp = (-0.5 * params.D) * k**2  # -D k^2 / 2, float64 for the host tables
-        self.shape = (1.0 - params.tau * k**2).to(**as_dev)  # gain filter S(k)
+        self.k2 = params.wavenumbers(dtype=torch.float64) ** 2  # k^2, float64 for the host tables
+        self.disp = (-0.5 * params.D) * self.k2  # -D k^2 / 2
+        self.shape = (1.0 - params.tau * self.k2).to(**as_dev)  # gain filter S(k)
         self.as_dev = as_dev
         self._tables = {}
         self._unresolved = {}
@@ -173,7 +173,7 @@ class _SplitStep:
     def _per_cavity(self, cavity: torch.Tensor):
         """From per-cavity values (B, 5) (``CAVITY_KEYS``): their dispersion -D k^2 / 2 (B, n),
         float64, and what the flows take, (gain filter S (B, n), g0, E0, Gamma (B,) each)."""
-        k2 = self.p.wavenumbers(dtype=torch.float64).to(cavity.device) ** 2
+        k2 = self.k2.to(cavity.device)
         c = cavity.to(torch.float64)
         D, E0, tau, g0, Gamma = c.unbind(-1)
         disp = (-0.5 * D)[:, None] * k2
