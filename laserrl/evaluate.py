@@ -87,6 +87,12 @@ def success_mask(r: torch.Tensor, success_r: float, hold_r: float | None) -> tor
     return (reached & ~later_below).any(-1)
 
 
+def success_rate(success: torch.Tensor) -> float:
+    """The fraction of rollouts that succeeded, exact for counts (9 of 10 is 0.9, which a float32
+    mean is not: 0.89999998 would miss train.stop_at_success=0.9)."""
+    return int(success.sum()) / success.numel()
+
+
 def _stage_base_angles(stage_cfg: Mapping[str, Any]) -> list[float]:
     base = []
     for name in ANGLE_NAMES:
@@ -107,6 +113,7 @@ def check_eval_config(eval_cfg: Mapping[str, Any]) -> None:
         check_numbers(eval_cfg.get(key), f"eval.{key}", optional=True, scalar_ok=True)
     if eval_cfg.get("init_fields") is not None:
         check_one_of(eval_cfg["init_fields"], "eval.init_fields", ("sech", "noise"))
+    check_number(eval_cfg.get("physics_spread"), "eval.physics_spread", low=0, high=0.5, optional=True)
 
 
 def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any],
@@ -134,11 +141,15 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     if eval_cfg.get("dtype"):
         env_cfg["dtype"] = eval_cfg["dtype"]
     env_cfg["compile"] = bool(eval_cfg.get("compile", env_cfg.get("compile", False)))
-    env_cfg["physics_spread"] = None  # the nominal cavity of the model (or eval.physics): one cavity, known
+    check_eval_config(eval_cfg)
+    # the nominal cavity of the model (or eval.physics), or with eval.physics_spread every rollout its own
+    # cavity, D, E0, tau, g0, Gamma each drawn within +-spread of it (drawn after the noise fields: the same
+    # noise draws as on the nominal cavity)
+    spread = eval_cfg.get("physics_spread")
+    env_cfg["physics_spread"] = None if spread is None else float(spread)
     mismatch = {k: v for k, v in dict(eval_cfg.get("physics") or {}).items() if v is not None}
     if mismatch:  # a cavity other than the one trained on (laserrl-eval env.physics.g0=...)
         env_cfg["physics"] = {**dict(env_cfg.get("physics") or {}), **mismatch}
-    check_eval_config(eval_cfg)
     steps = int(eval_cfg["steps"])
     repeats = int(eval_cfg.get("repeats") or 1)
     threshold = float(eval_cfg["success_r"])
@@ -162,6 +173,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     reset_td = TensorDict(init_angles=torch.deg2rad(init), init_K=torch.tensor([K for K, _, _ in combos], dtype=torch.float64),
                           batch_size=[B])
     td = reset_at(env, reset_td)
+    cavities = _cavities(env)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(steps, policy, auto_reset=False, tensordict=td)
     r = rollout["next", "r"].squeeze(-1)  # (B, steps)
@@ -179,6 +191,8 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
             "reward_path": [float(x) for x in r[i]],
             "angle_path_deg": [[float(a) for a in angles[i, t, ctrl]] for t in range(steps)],
         })
+        if cavities is not None:
+            per_start[-1]["cavity"] = cavities[i]
         if "model" in rollout.keys():
             per_start[-1]["model_path"] = [int(m) for m in rollout["model"][i]]
     final = r[:, -1]
@@ -196,10 +210,22 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
         "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
         "min_round_trips": min_round_trips(env_cfg), "K": Ks, "physics_changed": mismatch,
-        "success_rate": float(success.float().mean()), "mean_final_reward": float(final.mean()),
+        "physics_spread": env_cfg["physics_spread"],
+        "success_rate": success_rate(success), "mean_final_reward": float(final.mean()),
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,
     }
+
+
+def _cavities(env) -> list[dict] | None:
+    """Each rollout's D, E0, tau, g0, Gamma where the env drew them (``physics_spread``), else None."""
+    base = getattr(env, "base_env", env)
+    cavity = getattr(base.state, "cavity", None)
+    if cavity is None:
+        return None
+    from laserrl.physics.checks import CAVITY_KEYS
+
+    return [dict(zip(CAVITY_KEYS, map(float, row))) for row in cavity.double().cpu()]
 
 
 def write_eval(result: dict, out_dir: str | Path, plots: bool = True, kind: str = "rewards") -> Path:

@@ -2,7 +2,7 @@
 import pytest
 import torch
 
-from laserrl.evaluate import success_mask
+from laserrl.evaluate import success_mask, success_rate
 
 
 def test_final_reward_rule_without_hold():
@@ -19,6 +19,12 @@ def test_lock_then_hold_rule():
         [0.2, 0.2, 0.2, 0.2],      # locked from the first step: success
     ])
     assert success_mask(r, 0.15, 0.1).tolist() == [True, True, False, False, True]
+
+
+def test_success_rate_of_9_in_10_meets_a_target_of_90_percent():
+    success = torch.tensor([True] * 9 + [False])
+    assert success_rate(success) >= 0.9 and success_rate(success) == 0.9
+    assert success_rate(torch.zeros(3, dtype=torch.bool)) == 0.0
 
 
 def test_nearest_model_of_a_bank_with_points_and_ranges():
@@ -83,6 +89,36 @@ def test_eval_on_a_cavity_other_than_the_trained_one():
     assert other["per_start"][0]["reward_path"] != same["per_start"][0]["reward_path"]  # more gain: another pulse
     with pytest.raises(ValueError, match="env.physics.g0"):
         evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics": {"g0": -1.0}})
+
+
+def test_eval_on_cavities_drawn_around_the_trained_one():
+    """eval.physics_spread: every rollout on its own cavity within +-spread of the nominal one, listed in
+    eval.json and seeded; a bad spread names eval.physics_spread."""
+    from laserrl.evaluate import evaluate_policy
+    from laserrl.physics.checks import CAVITY_KEYS
+    from laserrl.physics.params import CavityParams
+
+    env_cfg = {"num_envs": 2, "max_round_trips": 3, "tol": None, "dtype": "complex64", "compile": False,
+               "reward_center": 0.1, "reward_scale": 0.1, "physics": {"n": 64, "z_steps": 2}}
+    stage_cfg = {"name": "siso", "controlled": ["alpha1"], "steps_deg": [2.0], "K": 0.1, "init_fields": "noise",
+                 "init_angles_deg": {"alpha1": [-40.0, -10.0], "alpha2": 3.0, "alpha3": 28.0, "alpha_p": 88.0},
+                 "max_steps": 3}
+    eval_cfg = {"steps": 2, "starts_deg": [-24.0], "success_r": 0.18, "repeats": 3, "seed": 5}
+    nominal = evaluate_policy(_hold_policy, env_cfg, stage_cfg, eval_cfg)
+    spread = evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics_spread": 0.1})
+    assert nominal["physics_spread"] is None and "cavity" not in nominal["per_start"][0]
+    assert spread["physics_spread"] == 0.1
+    cavities = [p["cavity"] for p in spread["per_start"]]
+    base = CavityParams()
+    for key in CAVITY_KEYS:
+        values = [c[key] for c in cavities]
+        assert all(abs(v / getattr(base, key) - 1) <= 0.1 + 1e-12 for v in values), (key, values)
+        assert len(set(values)) == 3  # each rollout its own cavity
+    assert all(n["reward_path"][0] != s["reward_path"][0] for n, s in zip(nominal["per_start"], spread["per_start"]))
+    again = evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics_spread": 0.1})
+    assert [p["cavity"] for p in again["per_start"]] == cavities  # seeded
+    with pytest.raises(ValueError, match="eval.physics_spread"):
+        evaluate_policy(_hold_policy, env_cfg, stage_cfg, {**eval_cfg, "physics_spread": 0.7})
 
 
 def test_eval_of_a_model_with_stacked_readings_starts_where_the_protocol_says():
