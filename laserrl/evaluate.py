@@ -293,8 +293,8 @@ def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> d
         raise ConfigError("not an evaluation over K: it has neither rules (a bank evaluation) nor by_K")
     Ks = [float(k) for k in result["by_K"]]
     rules = {"single": _summary(result)}
-    return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "rules": rules,
-            "grid_success": grid_success(rules, len(Ks))}
+    return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "seed": result.get("seed"),
+            "rules": rules, "grid_success": grid_success(rules, len(Ks))}
 
 
 def grid_success(rules: Mapping[str, dict], num_K: int) -> dict[str, float]:
@@ -378,7 +378,8 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
     result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members],
               "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
-              "stage": stage_cfg.get("name"), "trial_rule": dataclasses.asdict(rule), "rules": rules,
+              "stage": stage_cfg.get("name"), "seed": int(eval_cfg["seed"]) if eval_cfg.get("seed") is not None else seed,
+              "trial_rule": dataclasses.asdict(rule), "rules": rules,
               "grid_success": grid_success(rules, len(Ks))}
     write_eval(result, out_dir, eval_cfg.get("plots", True), kind="generalisation")
     return result

@@ -46,13 +46,13 @@ def plot_eval(result: dict, path: str | Path) -> Path:
 
 
 RULE_LABELS = {"single": "one model", "nearest": "bank, nearest K (knows K)", "max_q": "bank, highest Q (K unknown)",
-               "trial": "bank, trial (K unknown)"}
+               "trial": "bank, trial (K unknown)", "any_k": "one agent, measured signals (K unknown)"}
 
 
 def plot_generalisation(result: dict, path: str | Path) -> Path:
     """Success rate against K for each rule of a bank evaluation (paper fig. 6)."""
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
-    for name in ("single", "nearest", "max_q", "trial"):
+    for name in RULE_LABELS:
         rule = result["rules"].get(name)
         if rule is None:
             continue

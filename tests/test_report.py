@@ -147,16 +147,24 @@ def test_a_bank_model_fine_tuned_again_over_a_K_range_counts_every_fine_tuning(t
     from laserrl.model import load_model, model_metadata, save_model
     from laserrl.report.claims import _K_text, _finetune_episodes
 
-    def save(name, frames, max_steps, K, init_from):
+    def save(name, frames, max_steps, K, init_from, controlled=("alpha1",)):
         config = {"env": {}, "agent": {}, "init_from": init_from,
-                  "stage": {"K": K, "max_steps": max_steps, "controlled": ["alpha1"], "steps_deg": [2.0]}}
-        return str(save_model(tmp_path / name, {"w": torch.zeros(1)}, model_metadata(config, 3, frames=frames)))
+                  "stage": {"K": K, "max_steps": max_steps, "controlled": list(controlled),
+                             "steps_deg": [2.0] * len(controlled)}}
+        return str(save_model(tmp_path / name, {"w": torch.zeros(1)}, model_metadata(config, 3 ** len(controlled),
+                                                                                       frames=frames)))
 
     base = save("base", 40960, 20, 0.1, None)  # trained from scratch: not counted
     point = save("point", 6400, 40, 0.4, base)  # 160 episodes
     ranged = save("ranged", 1280, 40, [0.3, 0.4], point)  # 32 more
     assert _finetune_episodes(load_model(ranged)) == 192
     assert _finetune_episodes(load_model(point)) == 160
+    # a base grown by the curriculum (two controllers, then four) is not a fine-tuning
+    four = ("alpha1", "alpha2", "alpha3", "alpha_p")
+    duo = save("duo", 20480, 40, 0.1, None, ("alpha1", "alpha2"))
+    miso = save("miso", 81920, 100, 0.1, duo, four)
+    tuned = save("tuned", 2000, 100, -0.2, miso, four)
+    assert _finetune_episodes(load_model(tuned)) == 20
     shutil.rmtree(point)  # a parent that is gone ends the chain
     assert _finetune_episodes(load_model(ranged)) == 32
     assert _K_text([0.3, 0.4]) == "[0.3, 0.4]" and _K_text(-0.2) == "-0.2"

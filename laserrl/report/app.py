@@ -79,6 +79,8 @@ def run_report(cfg: DictConfig) -> dict:
     checkpoints = {role: rcfg["checkpoints"].get(role) for role in ("siso", "duo", "miso", "k_base")}
     bank = bank_entries(rcfg["checkpoints"].get("bank"))
     models = {role: load_model(path, role) for role, path in checkpoints.items() if path}  # fail fast
+    if rcfg["checkpoints"].get("any_k"):  # beyond the paper: not trained on the spot
+        models["any_k"] = load_model(rcfg["checkpoints"]["any_k"], "any_k")
     for path in bank_paths(bank):
         read_model(path)
     trained = train_missing(rcfg["train"], run_dir, checkpoints, bank, rcfg["results"], bool(rcfg.get("train_bank")))

@@ -26,7 +26,8 @@ from laserrl.evaluate import _stage_base_angles, as_generalisation, evaluate_ban
 
 #: the angles each model of the report controls (None: any; k_base, the model the claims about
 #: other K start from, is the four-controller model at K = 0.1, or zoo:siso for the single-input variant)
-ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES), "k_base": None}
+ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES), "k_base": None,
+         "any_k": tuple(ANGLE_NAMES)}  # any_k: the K-blind agent of experiment=miso_any_k (beyond the paper)
 NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K ships with laserrl yet; give "
               "report.checkpoints.bank and report.results.*, or see docs/experiments.md")
 
@@ -370,6 +371,23 @@ class ReportContext:
                               "report.results.generalisation")
         result = as_generalisation(self.rollout(single, **eval_cfg), single.path)
         write_eval(result, out, plots=False)
+        return result
+
+    @cached_property
+    def any_k(self) -> dict | None:
+        """The K-blind agent (``report.checkpoints.any_k``) on the K values and noise draws of the
+        generalisation (fig. 6): its ``evaluate_policy`` result; None without the model."""
+        model = self.models.get("any_k")
+        if model is None:
+            return None
+        g = self.generalisation
+        eval_cfg = {"K": [float(k) for k in g["K"]], "compile": self.compile, "plots": False}
+        if g.get("seed") is not None:  # the draws the bank and the one model had
+            eval_cfg["seed"] = int(g["seed"])
+        if self.cfg["generalisation"].get("steps") is not None:
+            eval_cfg["steps"] = int(self.cfg["generalisation"]["steps"])
+        result = self.rollout(model, **eval_cfg)
+        write_eval(result, self.run_dir / "any_k", plots=False)
         return result
 
     # ---------------------------------------------------------------- fig. 7: holding the lock

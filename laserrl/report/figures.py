@@ -243,6 +243,20 @@ def fig7_hybrid(ctx, path: Path) -> None:
     plot_control(ctx.control, path, dpi=DPI)
 
 
+# ------------------------------------------------------------------------------- beyond the paper
+@figure("any_k_comparison", "beyond the paper", "One agent for every K from measured signals (experiment=miso_any_k, "
+        "told nothing about K) against the paper's answers on the same K values and noise draws: the one model "
+        "trained at K = 0.1 and, where a bank is given, its rules (nearest K, which knows K; highest Q and trial, "
+        "which do not). Success rate per K of the four-controller protocol.")
+def any_k_comparison(ctx, path: Path) -> None:
+    from laserrl.evaluate import _summary
+
+    if ctx.any_k is None:
+        raise FigureSkipped("no K-blind agent: give report.checkpoints.any_k (a model of experiment=miso_any_k)")
+    g = ctx.generalisation
+    plot_generalisation({**g, "rules": {**g["rules"], "any_k": _summary(ctx.any_k)}}, path)
+
+
 def draw_figures(ctx, out_dir: Path, names: list[str] | None = None) -> dict[str, dict]:
     """Draw the registered figures (or ``names``) into ``out_dir``; returns name -> {path | skipped}."""
     from laserrl.config import ConfigError
