@@ -8,6 +8,7 @@ from omegaconf import OmegaConf
 
 from laserrl.train import check_train_config
 from laserrl.envs.factory import make_params, make_task
+from laserrl.model import zoo_names
 from laserrl.paths import CONF_DIR
 
 CONF = Path(CONF_DIR)
@@ -50,9 +51,13 @@ def test_every_group_option_composes_and_builds(group, option):
 def test_eval_and_control_experiments_compose_with_their_command(name):
     app = experiment_app(name)
     cfg = _compose([f"experiment={name}"], name=APP_CONFIG[app])
-    assert "checkpoint" in cfg and cfg.checkpoint is None  # the model to run is the user's to give
-    if app == "eval":
-        assert cfg.stage.name == "miso" and len(cfg.eval.K) == 13 and cfg.eval.K[0] == -0.2 and cfg.eval.K[-1] == 0.4
+    # the model to run is the user's to give, or one the package ships (runs as written on a fresh install)
+    assert "checkpoint" in cfg
+    named = [cfg.checkpoint] + list(cfg.get("bank") or [])
+    for model in (m for m in named if m is not None):
+        assert model.startswith("zoo:") and model[4:] in zoo_names(), f"experiment/{name}.yaml names {model}"
+    if app == "eval":  # the paper's K grid, -0.2 ... 0.4 in steps of 0.05 (other K after it)
+        assert cfg.stage.name == "miso" and list(cfg.eval.K[:13]) == pytest.approx([-0.2 + 0.05 * i for i in range(13)])
     else:
         assert cfg.scenario.bounds == [-0.2, 0.4] and cfg.controller.name == "all"
 

@@ -36,6 +36,7 @@ TINY = [
     "report.fig3_starts=[-30]", "report.landscape.alpha1_deg=[-30,-20,5]",
     "report.landscape.map_alpha1_deg=[-30,-20,5]", "report.landscape.map_alpha2_deg=[-5,0,5]",
     "report.landscape.settle_round_trips=10", "report.generalisation.K=[0.0,0.2]", "report.generalisation.steps=3",
+    "report.checkpoints.any_k=zoo:miso-any-k",  # beyond the paper: the shipped K-blind agent, 3 steps per K
     "report.control=['experiment=miso_hybrid','num_cavities=2','scenario.steps=6','scenario.jumps.times=[2,4]']",
 ]
 
@@ -104,6 +105,11 @@ def test_report_numbers_match_what_it_measured(smoke):
     control = numbers["control"]
     assert {"hybrid", "rl", "esc", "random_search", "hill_climb", "ga"} <= set(control) and control["num_cavities"] == 2
     assert f"hybrid: locked {control['hybrid']['frac_locked']:.2f}" in claims["hybrid"]["laserrl"]
+    # the K-blind agent ran on fig. 6's K values and draws and is compared with the rules measured there
+    any_k = json.loads((tmp / "run" / "any_k" / "eval.json").read_text())
+    assert any_k["K"] == [0.0, 0.2] and any_k["steps"] == 3
+    ok = sum(v["success_rate"] >= 0.9 for v in any_k["by_K"].values())
+    assert f"({ok} / 2 values" in claims["any_k"]["laserrl"] and "the bank told K" in claims["any_k"]["laserrl"]
 
 
 def _compose(tmp_path, *overrides):

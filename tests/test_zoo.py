@@ -24,8 +24,9 @@ def test_every_zoo_model_is_small_and_has_a_model_card(name):
     assert zoo.size(name) < zoo.max_bytes(name)
     state = load_model(f"zoo:{name}")
     card = state["meta"]["card"]
-    for key in ("command", "commit", "machine", "date", "frames", "train_seconds"):
+    for key in ("command", "commit", "machine", "date", "train_seconds"):
         assert card.get(key), (name, key)
+    assert int(card["frames"]) >= 0  # 0: a bank model whose base already held the lock at its K
     assert card["command"].startswith("laserrl-train") and "hydra.run.dir" not in card["command"]
     assert state["meta"]["eval"]["success_rate"] is not None
     text = zoo.describe(name)
