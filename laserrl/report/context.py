@@ -28,8 +28,9 @@ from laserrl.evaluate import _stage_base_angles, as_generalisation, evaluate_ban
 #: other K start from, is the four-controller model at K = 0.1, or zoo:siso for the single-input variant)
 ROLES = {"siso": ("alpha1",), "duo": ("alpha1", "alpha2"), "miso": tuple(ANGLE_NAMES), "k_base": None,
          "any_k": tuple(ANGLE_NAMES)}  # any_k: the K-blind agent of experiment=miso_any_k (beyond the paper)
-NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K ships with laserrl yet; give "
-              "report.checkpoints.bank and report.results.*, or see docs/experiments.md")
+NOT_IN_ZOO = ("not backed by the zoo: no bank of models fine-tuned across K was given; give "
+              "report.checkpoints.bank (the zoo's: zoo:miso-k-0.2, zoo:miso-k0, zoo:miso-k0.2, zoo:miso-k0.4) and "
+              "report.results.*, or see docs/experiments.md")
 
 APPS = {"train": "laserrl-train", "evaluate": "laserrl-eval", "app": "laserrl-report"}
 
