@@ -28,7 +28,7 @@ from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
-from laserrl.envs.laser_env import ANGLE_NAMES, reset_at
+from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -219,8 +219,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
 
 def _cavities(env) -> list[dict] | None:
     """Each rollout's D, E0, tau, g0, Gamma where the env drew them (``physics_spread``), else None."""
-    base = getattr(env, "base_env", env)
-    cavity = getattr(base.state, "cavity", None)
+    cavity = getattr(base_env_of(env).state, "cavity", None)
     if cavity is None:
         return None
     from laserrl.physics.checks import CAVITY_KEYS
@@ -348,7 +347,9 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     model_K = [_stage_K(m[0]) for m in members]
     cfg = members[0][0]["config"]
     stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
-    seed = int(cfg.get("seed", 0))
+    check_eval_config(eval_cfg)  # before eval.seed is read
+    # the draws: eval.seed, else the first member's training seed
+    seed = int(eval_cfg["seed"]) if eval_cfg.get("seed") is not None else int(cfg.get("seed", 0))
     Ks = _as_list(eval_cfg.get("K"))
     if not Ks:
         raise ConfigError("a bank evaluation needs the K grid: eval.K=[-0.2,-0.15,...,0.4]")
@@ -378,7 +379,7 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
     result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members],
               "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
-              "stage": stage_cfg.get("name"), "seed": int(eval_cfg["seed"]) if eval_cfg.get("seed") is not None else seed,
+              "stage": stage_cfg.get("name"), "seed": seed,
               "trial_rule": dataclasses.asdict(rule), "rules": rules,
               "grid_success": grid_success(rules, len(Ks))}
     write_eval(result, out_dir, eval_cfg.get("plots", True), kind="generalisation")

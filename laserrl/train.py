@@ -34,7 +34,7 @@ from laserrl.model import git_commit, model_metadata, package_version, save_mode
 from laserrl.config import (agent_n_steps, check_device, check_logger_config, log_config, make_logger,
                             optim_lr_decay)
 from laserrl.envs.factory import make_env
-from laserrl.envs.laser_env import LaserCavityEnv
+from laserrl.envs.laser_env import LaserCavityEnv, base_env_of
 from laserrl.evaluate import check_eval_config
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
@@ -205,8 +205,7 @@ def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success:
 def env_snapshot(collector) -> dict | None:
     """The state of a sync collector's cavities (episodes in flight); None for collectors whose
     envs live in other processes, whose state TorchRL cannot hand over."""
-    env = getattr(collector, "env", None)
-    base = getattr(env, "base_env", env)
+    base = base_env_of(getattr(collector, "env", None))
     return base.snapshot() if isinstance(base, LaserCavityEnv) else None
 
 

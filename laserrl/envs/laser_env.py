@@ -464,12 +464,17 @@ class LaserCavityEnv(EnvBase):
         return torch.rad2deg(self.state.angles)
 
 
+def base_env_of(env):
+    """The env inside any TorchRL transforms around it (``TransformedEnv.base_env``), or ``env``."""
+    return getattr(env, "base_env", env)
+
+
 def reset_at(env, start: TensorDictBase) -> TensorDictBase:
     """``env.reset(start)`` that brings ``init_angles`` (B, 4) radians and ``init_K`` (B,) to the
     cavities through any transforms around the ``LaserCavityEnv``: TorchRL's ``TransformedEnv``
     passes on only the reset and state keys of its input, so the start is handed to the base env
     for this reset, and the transforms (e.g. the stacked history) reset with it."""
-    base = getattr(env, "base_env", env)
+    base = base_env_of(env)
     if base is env:
         return env.reset(start)
     base._start = start.select("init_angles", "init_K", strict=False)

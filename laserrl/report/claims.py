@@ -256,10 +256,13 @@ def _episodes_finetune(ctx) -> Claim:
 
 
 # ---------------------------------------------------------------------------------- generalisation
+def _holding(by_K: dict) -> tuple[list[float], list[bool]]:
+    """The K of an evaluation's ``by_K`` and whether each holds success >= 0.9."""
+    return [float(k) for k in by_K], [v["success_rate"] >= 0.9 for v in by_K.values()]
+
+
 def _rule(ctx, name: str) -> tuple[list[float], list[bool]]:
-    rule = ctx.generalisation["rules"][name]
-    Ks = [float(k) for k in rule["by_K"]]
-    return Ks, [v["success_rate"] >= 0.9 for v in rule["by_K"].values()]
+    return _holding(ctx.generalisation["rules"][name]["by_K"])
 
 
 @claim("K_single")
@@ -432,9 +435,7 @@ def _any_k(ctx) -> Claim:
     paper = "not in the paper (its agent reads the complex fields; other K need other models, picked by K)"
     if ctx.any_k is None:
         return Claim("any_k", text, paper, "not run: give report.checkpoints.any_k (zoo:miso-any-k)", [], "")
-    by_K = ctx.any_k["by_K"]
-    Ks = [float(k) for k in by_K]
-    ok = [v["success_rate"] >= 0.9 for v in by_K.values()]
+    Ks, ok = _holding(ctx.any_k["by_K"])
     ctx.commands.setdefault("any_k", ctx.models["any_k"].command or ctx.models["any_k"].path)
     ctx.commands.setdefault("generalisation", _generalisation_command(ctx))
     others = []

@@ -359,10 +359,7 @@ class ReportContext:
                 return as_generalisation(read_json(given, "report.results.generalisation"))
             except ConfigError as err:
                 raise ConfigError(f"report.results.generalisation: {given}: {err}") from None
-        gc = self.cfg["generalisation"]
-        eval_cfg = {"K": [float(k) for k in gc["K"]], "compile": self.compile, "plots": False}
-        if gc.get("steps") is not None:
-            eval_cfg["steps"] = int(gc["steps"])
+        eval_cfg = self._grid_eval_cfg(self.cfg["generalisation"]["K"])
         out = self.run_dir / "generalisation"
         single = self.models.get("k_base")
         if self.bank:
@@ -374,6 +371,13 @@ class ReportContext:
         write_eval(result, out, plots=False)
         return result
 
+    def _grid_eval_cfg(self, Ks) -> dict:
+        """Evaluation settings over the K values ``Ks`` (``generalisation.steps`` null: the model's protocol)."""
+        eval_cfg = {"K": [float(k) for k in Ks], "compile": self.compile, "plots": False}
+        if self.cfg["generalisation"].get("steps") is not None:
+            eval_cfg["steps"] = int(self.cfg["generalisation"]["steps"])
+        return eval_cfg
+
     @cached_property
     def any_k(self) -> dict | None:
         """The K-blind agent (``report.checkpoints.any_k``) on the K values and noise draws of the
@@ -382,11 +386,9 @@ class ReportContext:
         if model is None:
             return None
         g = self.generalisation
-        eval_cfg = {"K": [float(k) for k in g["K"]], "compile": self.compile, "plots": False}
+        eval_cfg = self._grid_eval_cfg(g["K"])
         if g.get("seed") is not None:  # the draws the bank and the one model had
             eval_cfg["seed"] = int(g["seed"])
-        if self.cfg["generalisation"].get("steps") is not None:
-            eval_cfg["steps"] = int(self.cfg["generalisation"]["steps"])
         result = self.rollout(model, **eval_cfg)
         write_eval(result, self.run_dir / "any_k", plots=False)
         return result
