@@ -145,7 +145,7 @@ class _Cavities:
         # torch and TorchRL load here, not at import: ``import laserrl`` registers the ids, and
         # should stay light and keep TorchRL out of programs that use only the physics
         from laserrl.config import check_device
-        from laserrl.envs.factory import history_length, make_env
+        from laserrl.envs.factory import gru_size, history_length, make_env
         from laserrl.envs.laser_env import policy_keys
 
         env_cfg, stage_cfg = _configs_with(stage, experiment, overrides)
@@ -161,6 +161,8 @@ class _Cavities:
         if history_length(env_cfg) != 1:  # reset below steps the base env, past a history transform
             raise ConfigError("history: the Gymnasium envs give one observation per step; stack them with "
                               "gymnasium.wrappers.FrameStackObservation")
+        if gru_size(env_cfg) is not None:
+            raise ConfigError("gru_size: the Gymnasium envs give observations only; a recurrent agent keeps its own state")
         base = self.env.base_env
         self.num_envs = base.batch_size[0]
         self.device = base.device

@@ -314,6 +314,8 @@ def save_ensemble(out: str | os.PathLike, specs: list[str]) -> Path:
     for st in states:
         if st["meta"].get("ensemble", 1) != 1:
             raise ModelError(f"{st['path']} is an ensemble itself; give its members")
+        if st["config"]["env"].get("gru_size") is not None:
+            raise ModelError(f"{st['path']} is recurrent (env.gru_size): an ensemble averages feed-forward models")
         if task(st) != task(first):
             raise ModelError(f"{st['path']} is trained for another task or network than {first['path']} (stage, K, "
                              "actions, network and physics must agree)")

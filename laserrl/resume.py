@@ -104,7 +104,7 @@ class FilledRows:
         size = self.storage.max_size
         if data.shape[0] == size:
             return data
-        full = data.new_zeros(size) if out is None else out
+        full = data.new_zeros((size, *data.shape[1:])) if out is None else out  # rows of a recurrent agent's sequences
         full[: data.shape[0]] = data
         return full
 

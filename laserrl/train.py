@@ -100,13 +100,22 @@ def check_train_config(cfg: DictConfig):
     env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
                    cfg.env.num_envs, cfg.seed, cfg.device)
     build_agent(cfg, env.action_spec_unbatched)
-    make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
     n_steps = make_n_step(agent_n_steps(cfg), cfg.agent.gamma)
     # rules across groups
     c, num_envs = cfg.collector, int(cfg.env.num_envs)
     if c.frames_per_batch % num_envs:
         raise ConfigError(f"collector.frames_per_batch ({c.frames_per_batch}) must be a multiple of "
                           f"env.num_envs ({num_envs})")
+    if cfg.env.get("gru_size") is not None:
+        if replay_sequence(cfg) < 2:
+            raise ConfigError(f"env.gru_size: a recurrent agent learns from sequences of collector.frames_per_batch / "
+                              f"env.num_envs steps, here {replay_sequence(cfg)}; raise collector.frames_per_batch")
+        if n_steps is not None:
+            raise ConfigError("env.gru_size: a recurrent agent learns from one-step targets; set agent.n_steps=1")
+        if c.kind != "sync":
+            raise ConfigError(f"env.gru_size: a recurrent agent is trained with collector=sync, not {c.kind}")
+    make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta,
+                sequence=replay_sequence(cfg))
     if c.kind == "ray" and c.sync:
         share, left = divmod(c.frames_per_batch, int(c.num_workers))
         if left or share % num_envs:
@@ -118,6 +127,12 @@ def check_train_config(cfg: DictConfig):
                           f"collector=sync, multi_sync or ray with collector.sync=true, not {c.kind}"
                           + (" with sync=false" if c.kind == "ray" else ""))
     return env.action_spec_unbatched
+
+
+def replay_sequence(cfg: DictConfig) -> int:
+    """Steps per replay item: one (a transition) for a feed-forward agent; for a recurrent one
+    (``env.gru_size``) a collector batch's row, the ``frames_per_batch / num_envs`` steps of one cavity."""
+    return 1 if cfg.env.get("gru_size") is None else int(cfg.collector.frames_per_batch) // int(cfg.env.num_envs)
 
 
 def build_agent(cfg: DictConfig, action_spec) -> DQNAgent:
@@ -157,8 +172,8 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0, env
                      threads=cfg.collector.worker_threads if multi else None)
     common = dict(frames_per_batch=cfg.collector.frames_per_batch, total_frames=cfg.train.total_frames - frames_done,
                   init_random_frames=max(0, cfg.replay.init_random_frames - frames_done), device=cfg.device)
-    # The Q-network is feed-forward: it needs no InitTracker or primers, so the collectors
-    # must leave the env as it is (torchrl 0.14 warns, and 0.15 would append an InitTracker)
+    # make_env adds what a recurrent Q-network needs (env.gru_size: InitTracker and its primer), so
+    # the collectors must leave the env as it is (torchrl 0.14 warns, and 0.15 would append an InitTracker)
     no_policy_transforms = dict(auto_register_policy_transforms=False)
     if not multi:
         return Collector(partial(env_fn, snapshot=envs), policy, **common, **no_policy_transforms)
@@ -267,9 +282,13 @@ def warm_start_frames(init_from: str) -> int | None:
         return None
 
 
-def store(replay, n_step, data) -> None:
-    """Put a collected batch into replay, as n-step transitions when ``n_step`` is set (their
-    first n steps wait in the transform until their returns are complete)."""
+def store(replay, n_step, data, sequences: bool = False) -> None:
+    """Put a collected batch (cavities, steps) into replay: as transitions, n-step ones when
+    ``n_step`` is set (their first n steps wait in the transform until their returns are
+    complete), or with ``sequences`` (a recurrent agent) each cavity's steps as one item."""
+    if sequences:
+        replay.extend(data.reshape(-1, data.shape[-1]))
+        return
     transitions = data if n_step is None else n_step.inv(data)
     if transitions is not None:
         replay.extend(transitions.reshape(-1))
@@ -321,7 +340,8 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         warm_start(agent.qnet, cfg.init_from, list(cfg.stage.controlled))
         agent.target.init_()  # the target network starts from the warm-started weights
         agent.restart_average()
-    replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta)
+    replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta,
+                         sequence=replay_sequence(cfg))
     n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))  # None: one-step TD
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
@@ -376,7 +396,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 between_batches = False
                 t_batch = time.perf_counter()
                 run.frames += data.numel()
-                store(replay, n_step, data)
+                store(replay, n_step, data, sequences=replay_sequence(cfg) > 1)
                 agent.explore(run.frames)
                 if run.frames >= loop.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
                     for _ in range(max(1, int(round(data.numel() * loop.updates_per_frame)))):

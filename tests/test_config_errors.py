@@ -77,6 +77,9 @@ def _compose(overrides):
     # integers that are not finite
     ("train.total_frames=inf", "train.total_frames"), ("collector.frames_per_batch=nan", "collector.frames_per_batch"),
     ("env.num_envs=inf", "env.num_envs"),
+    # a recurrent agent's memory
+    ("env.gru_size=0", "env.gru_size"), ("env.gru_size=2.5", "env.gru_size"), ("env.gru_size=true", "env.gru_size"),
+    ("env.gru_size=32", "env.gru_size"),  # with the fields observation
 ])
 def test_hostile_value_names_its_key(override, key):
     cfg = _compose([override])
@@ -94,6 +97,19 @@ def test_n_step_returns_refuse_collectors_that_interleave_envs(collector):
     with pytest.raises(ValueError, match=r"^agent.n_steps=3 needs batches from every env in turn"):
         check_train_config(cfg)
     check_train_config(_compose(["agent.n_steps=3", "collector=multi_sync"]))
+
+
+@pytest.mark.parametrize("override, match", [
+    (["collector.frames_per_batch=64"], "sequences of collector.frames_per_batch / env.num_envs steps, here 1"),
+    (["agent.n_steps=3"], "one-step targets"), (["collector=multi_sync"], "collector=sync, not multi_sync"),
+    (["optim.batch_size=8"], "optim.batch_size \\(8\\) must hold at least one sequence of 16 steps"),
+])
+def test_recurrent_agent_rules_across_groups(override, match):
+    # a GRU learns from each cavity's steps of one batch, stored together
+    recurrent = ["env.observation=measured", "env.gru_size=16", "env.num_envs=64", "collector.frames_per_batch=1024"]
+    check_train_config(_compose(recurrent))
+    with pytest.raises(ValueError, match=match):
+        check_train_config(_compose([*recurrent, *override]))
 
 
 @pytest.mark.parametrize("override, group", [("stage=nosuch", "stage"), ("env=nosuch", "env")])

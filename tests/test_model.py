@@ -177,6 +177,12 @@ def test_an_ensemble_acts_on_the_mean_q_of_its_members(tmp_path):
     (members[1] / META).write_text(json.dumps(meta))
     with pytest.raises(ModelError, match="another task or network"):
         save_ensemble(tmp_path / "mixed", members)
+    meta["config"]["stage"]["K"] = 0.1
+    meta["config"]["env"]["gru_size"] = 16  # a recurrent model keeps a state the others do not share
+    (members[1] / META).write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="is recurrent"):
+        save_ensemble(tmp_path / "recurrent", members)
+    assert not (tmp_path / "recurrent").exists()
 
 
 def test_an_ensemble_with_a_stray_tensor_or_a_bad_count_is_refused(tmp_path):

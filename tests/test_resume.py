@@ -201,6 +201,27 @@ def test_an_n_step_run_resumes_with_the_transitions_it_stored(tmp_path):
     assert loaded.storage[: len(loaded)]["steps_to_next_obs"].max() == 3
 
 
+def test_a_recurrent_run_resumes_with_the_sequences_it_stored(tmp_path):
+    run_dir = tmp_path / "run"
+    gru = ["env.observation=measured", "env.instruments.spectrum_span=6.0", "env.instruments.spectrum_bins=16",
+           "env.instruments.autocorrelation_points=16", "env.gru_size=8", "env.num_envs=8", "collector.frames_per_batch=32",
+           "optim.batch_size=16", "replay.init_random_frames=32"]
+    res = _run(run_dir, *TINY, *gru, "train.total_frames=64")
+    assert res.returncode == 0, res.stderr[-3000:]
+    state = load_run(run_dir)
+    assert state["frames"] == 64 and state["replay_size"] == 16  # 2 batches x 8 cavities, 4 steps each
+    res = _run(tmp_path / "resume", f"resume={run_dir}", "train.total_frames=128")
+    assert res.returncode == 0, res.stderr[-3000:]
+    state = load_run(run_dir)
+    loaded = make_replay("prioritized", 100_000, 16, sequence=4)
+    load_replay(loaded, state)
+    assert len(loaded) == state["replay_size"] == 32
+    stored = loaded.storage[: len(loaded)]
+    assert stored.shape == (32, 4) and stored["recurrent_state"].shape == (32, 4, 1, 8)
+    # within a stored sequence each step starts from the state the step before left
+    assert torch.equal(stored["recurrent_state"][:, 1:], stored["next", "recurrent_state"][:, :-1])
+
+
 @pytest.mark.parametrize("saved_schedule", [True, False], ids=["schedule-saved", "checkpoint-from-before-schedules"])
 def test_the_learning_rate_schedule_continues_across_a_resume(tmp_path, saved_schedule):
     run_dir = tmp_path / "run"

@@ -39,6 +39,9 @@ def _common_action_count(qnets: list[nn.Module], group: str, of_group: str) -> i
     ``group`` / ``of_group`` name the collection in the messages ("a model bank" / "a bank")."""
     if not qnets:
         raise ValueError(f"{group} needs at least one Q-network")
+    if any(getattr(q, "recurrent", False) for q in qnets):
+        raise ValueError(f"{group} combines feed-forward Q-networks; a recurrent one (env.gru_size) keeps a state of "
+                         "its own that the combined models do not share")
     actions = {q.num_actions for q in qnets}
     if len(actions) != 1:
         raise ValueError(f"all models of {of_group} must have the same number of actions, got {sorted(actions)}")

@@ -18,10 +18,10 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torchrl.data import LazyTensorStorage, TensorDictPrioritizedReplayBuffer, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import RandomSampler
 from torchrl.envs.transforms import MultiStepTransform
-from torchrl.modules import EGreedyModule, QValueActor
+from torchrl.modules import EGreedyModule, QValueActor, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from laserrl.agents.qnet import FieldQNet, MeasuredQNet
+from laserrl.agents.qnet import FieldQNet, MeasuredQNet, RecurrentMeasuredQNet
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 
@@ -39,10 +39,11 @@ def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, h
         raise ConfigError(f"agent.network: {err}") from None
 
 
-def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float) -> MeasuredQNet:
+def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float) -> MeasuredQNet | RecurrentMeasuredQNet:
     """The Q-network for ``env.observation=measured``: its inputs from ``env.instruments`` and
-    ``env.history``, its layers from ``agent.network.hidden`` and ``negative_slope``."""
-    from laserrl.envs.factory import history_length
+    ``env.history``, its layers from ``agent.network.hidden`` and ``negative_slope``; with
+    ``env.gru_size`` a GRU of that size between the first layer and the rest."""
+    from laserrl.envs.factory import gru_size, history_length
 
     hidden = check_numbers(hidden, "agent.network.hidden", low=1, integer=True)
     negative_slope = check_number(negative_slope, "agent.network.negative_slope", low=0)
@@ -50,28 +51,41 @@ def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float)
 
     try:
         ins = Instruments(**dict(env_cfg.get("instruments") or {}))  # its defaults for the settings not given
-        return MeasuredQNet(num_actions, bins=ins.spectrum_bins, points=ins.autocorrelation_points,
-                            history=history_length(env_cfg), hidden=tuple(hidden), negative_slope=negative_slope)
+        shape = dict(bins=ins.spectrum_bins, points=ins.autocorrelation_points, history=history_length(env_cfg),
+                     hidden=tuple(hidden), negative_slope=negative_slope)
+        memory = gru_size(env_cfg)
+        if memory is not None:
+            return RecurrentMeasuredQNet(num_actions, gru_size=memory, **shape)
+        return MeasuredQNet(num_actions, **shape)
     except (TypeError, ValueError) as err:
         raise ConfigError(f"env.instruments: {err}") from None
 
 
-def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet:
+def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet | RecurrentMeasuredQNet:
     """The Q-network for an env of config ``env_cfg`` (its ``observation``, grid, instruments and
     history) with ``num_actions`` joint actions and the ``agent.network`` config ``network``."""
     observation = env_cfg.get("observation", "fields")
     if observation == "measured":
         return make_measured_qnet(num_actions, env_cfg, network["hidden"], network["negative_slope"])
-    from laserrl.envs.factory import history_length
+    from laserrl.envs.factory import gru_size, history_length
 
     if history_length(env_cfg) != 1:
         raise ConfigError("env.history > 1 needs env.observation=measured (the fields network sees one state)")
+    if gru_size(env_cfg) is not None:
+        raise ConfigError("env.gru_size needs env.observation=measured (the fields network has no memory)")
     return make_qnet(num_actions, int((env_cfg.get("physics") or {}).get("n", 256)), network["channels"],
                      network["kernel_size"], network["pool"], network["hidden"], network["negative_slope"])
 
 
-def make_actor(qnet: FieldQNet | MeasuredQNet, action_spec) -> QValueActor:
+def is_recurrent(qnet) -> bool:
+    """Whether ``qnet`` keeps a state between steps (``RecurrentMeasuredQNet``)."""
+    return bool(getattr(qnet, "recurrent", False))
+
+
+def make_actor(qnet: FieldQNet | MeasuredQNet | RecurrentMeasuredQNet, action_spec) -> QValueActor:
     """Greedy Q-actor reading the network's ``in_keys``; ``action_spec`` is the env's unbatched action spec."""
+    if is_recurrent(qnet):
+        return QValueActor(qnet.td_module(), spec=action_spec)
     keys = list(qnet.in_keys)
     module = TensorDictModule(qnet, in_keys=keys, out_keys=["action_value"])
     return QValueActor(module, in_keys=keys, spec=action_spec)
@@ -126,13 +140,23 @@ def make_target_updater(loss: DQNLoss, kind: str, tau: float = 0.005, interval: 
     return HardUpdate(loss, value_network_update_interval=interval)
 
 
-def make_replay(kind: str, size: int, batch_size: int, alpha: float = 0.6, beta: float = 0.4, device="cpu"):
-    """TorchRL's prioritized (default) or uniform replay over a flat tensor storage."""
+def make_replay(kind: str, size: int, batch_size: int, alpha: float = 0.6, beta: float = 0.4, device="cpu",
+                sequence: int = 1):
+    """TorchRL's prioritized (default) or uniform replay over a flat tensor storage.
+
+    ``sequence`` > 1 (a recurrent agent): each stored item is a sequence of that many steps of one
+    cavity (a collector batch's row), ``size`` and ``batch_size`` still count steps, and a
+    sequence's priority is the largest TD error along it."""
     check_one_of(kind, "replay.kind", ("prioritized", "uniform"))
     size = check_number(size, "replay.size", low=1, integer=True)
     batch_size = check_number(batch_size, "optim.batch_size", low=1, integer=True)
     alpha = check_number(alpha, "replay.alpha", low=0)
     beta = check_number(beta, "replay.beta", low=0)
+    if sequence > 1:
+        if batch_size < sequence:
+            raise ConfigError(f"optim.batch_size ({batch_size}) must hold at least one sequence of {sequence} steps "
+                              "(collector.frames_per_batch / env.num_envs) for a recurrent agent")
+        size, batch_size = max(1, size // sequence), batch_size // sequence
     storage = LazyTensorStorage(size, device=device)
     if kind == "prioritized":
         return TensorDictPrioritizedReplayBuffer(alpha=alpha, beta=beta, storage=storage, batch_size=batch_size,
@@ -172,7 +196,7 @@ class DQNAgent:
     al. 2017, "Averaged-DQN", average Q-estimates for the same reason).
     """
 
-    qnet: FieldQNet | MeasuredQNet
+    qnet: FieldQNet | MeasuredQNet | RecurrentMeasuredQNet
     actor: QValueActor
     policy: TensorDictSequential
     egreedy: EGreedyModule
@@ -234,7 +258,8 @@ class DQNAgent:
         """One gradient step on a batch sampled from ``replay``, then the target update (and,
         for prioritized replay, the new priorities); returns the loss."""
         sample = replay.sample()
-        losses = self.loss(sample)
+        with set_recurrent_mode(is_recurrent(self.qnet)):  # a GRU runs over each stored sequence
+            losses = self.loss(sample)
         self.optimizer.zero_grad(set_to_none=True)
         losses["loss"].backward()
         torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.max_grad_norm)

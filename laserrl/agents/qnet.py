@@ -116,3 +116,66 @@ class MeasuredQNet(nn.Module):
         if len(obs) != len(self.in_keys):
             raise ValueError(f"MeasuredQNet reads {list(self.in_keys)}, got {len(obs)} tensors")
         return self.head(self.features(*obs))
+
+
+class RecurrentMeasuredQNet(nn.Module):
+    """Q(h_t, .) with a memory: ``MeasuredQNet``'s scaled observations pass a fully connected
+    layer (``hidden[0]``, leaky ReLU), a GRU (TorchRL's ``GRUModule``) keeps the hidden state
+    h_t = GRU(embedding_t, h_{t-1}) across the steps of an episode, and the remaining layers
+    (``hidden[1:]``) map h_t to one Q-value per joint action.
+
+    The env carries h (``recurrent_state``, TorchRL's ``TensorDictPrimer``) and marks the first
+    step of each episode (``is_init``, ``InitTracker``), where the GRU starts from zero
+    (``laserrl.envs.factory.make_env`` with ``env.gru_size``). Acting runs one step at a time;
+    learning runs the GRU over stored sequences from their first step's stored h, inside
+    ``torchrl.modules.set_recurrent_mode(True)``. ``td_module()`` is the network as a
+    TensorDict module writing ``action_value``.
+    """
+
+    observation = "measured"
+    recurrent = True
+
+    def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1, gru_size: int = 64,
+                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+        super().__init__()
+        from torchrl.modules import GRUModule
+
+        if int(gru_size) != gru_size or gru_size < 1:
+            raise ValueError(f"gru_size must be an integer >= 1, got {gru_size!r}")
+        if not hidden:
+            raise ValueError("hidden needs at least one width (the layer before the GRU)")
+        # the observation scaling of the feed-forward network (its head is replaced below)
+        self.observations = MeasuredQNet(num_actions, bins, points, history, hidden=(), negative_slope=negative_slope)
+        del self.observations.head
+        self.num_actions, self.gru_size = int(num_actions), int(gru_size)
+        self.obs_keys = self.observations.in_keys
+        self.in_keys = (*self.obs_keys, "recurrent_state", "is_init")
+        width = self.observations.history * (bins + 1 + points + 8)
+        self.embed = nn.Sequential(nn.Linear(width, int(hidden[0])), nn.LeakyReLU(negative_slope))
+        self.gru = GRUModule(input_size=int(hidden[0]), hidden_size=self.gru_size, in_keys=["embedding", "recurrent_state"],
+                             out_keys=["memory", ("next", "recurrent_state")])
+        head: list[nn.Module] = []
+        width = self.gru_size
+        for h in hidden[1:]:
+            head += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
+            width = int(h)
+        head.append(nn.Linear(width, num_actions))
+        self.head = nn.Sequential(*head)
+
+    def embedding(self, *obs: torch.Tensor) -> torch.Tensor:
+        return self.embed(self.observations.features(*obs))
+
+    def td_module(self):
+        """observations -> ``embedding`` -> GRU (``memory``, next ``recurrent_state``) -> ``action_value``."""
+        from tensordict.nn import TensorDictModule, TensorDictSequential
+
+        return TensorDictSequential(TensorDictModule(self.embedding, in_keys=list(self.obs_keys), out_keys=["embedding"]),
+                                    self.gru, TensorDictModule(self.head, in_keys=["memory"], out_keys=["action_value"]))
+
+    def make_primer(self):
+        """The env transform that carries the GRU's hidden state from step to step (zeros at a reset)."""
+        return self.gru.make_tensordict_primer()
+
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        raise TypeError("RecurrentMeasuredQNet keeps a state between steps: run it as td_module() on an env "
+                        "that carries recurrent_state and is_init")

@@ -32,7 +32,11 @@ MODE_RL, MODE_ESC = 0, 1
 
 class DeepRL:
     """Greedy deep RL: ``policy`` maps the observation (``fields``, ``angles``) to a discrete
-    ``action``; the angles move by ``action_to_deltas(action, steps_deg)`` as in the env."""
+    ``action``; the angles move by ``action_to_deltas(action, steps_deg)`` as in the env.
+
+    A recurrent policy (one that reads ``recurrent_state``, ``env.gru_size``) keeps its state
+    here from one call to the next, from zero at ``reset``; it reads every step's observation,
+    also while the hybrid's ESC moves the plates."""
 
     name = "rl"
 
@@ -43,13 +47,24 @@ class DeepRL:
         self.idx = [ANGLE_NAMES.index(a) for a in controlled]
         self.steps = torch.tensor([float(s) for s in steps_deg], dtype=torch.float64)
 
+        self._memory = None  # a recurrent policy's state after the last step (None: start afresh)
+
     def reset(self, obs, angles_deg) -> None:
-        pass
+        self._memory = None
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
             keys = getattr(self.policy, "in_keys", None)  # a TensorDict module reads its own keys
-            action = self.policy((obs if keys is None else obs.select(*keys, strict=False)).clone())["action"]
+            td = (obs if keys is None else obs.select(*keys, strict=False)).clone()
+            recurrent = keys is not None and "recurrent_state" in keys
+            if recurrent:
+                first = self._memory is None  # the plant's env carries the state's shape (make_env's primer)
+                td["recurrent_state"] = torch.zeros_like(td["recurrent_state"]) if first else self._memory
+                td["is_init"] = torch.full((*td.batch_size, 1), first, dtype=torch.bool, device=td.device)
+            out = self.policy(td)
+            if recurrent:
+                self._memory = out["next", "recurrent_state"]
+            action = out["action"]
         command = angles_deg.clone().to(torch.float64)
         command[:, self.idx] += action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
         return command

@@ -10,7 +10,7 @@ import torch
 from torchrl.envs import Compose, TransformedEnv
 
 from laserrl.envs.laser_env import LaserCavityEnv, LaserTask, finite_number, policy_keys
-from laserrl.envs.transforms import centred_reward, stacked_history
+from laserrl.envs.transforms import centred_reward, recurrent_memory, stacked_history
 from laserrl.physics import CavityParams
 
 TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "K_drift", "K_jump", "init_fields", "sech_amplitude",
@@ -65,6 +65,17 @@ def history_length(env_cfg: Mapping[str, Any]) -> int:
     return int(h)
 
 
+def gru_size(env_cfg: Mapping[str, Any]) -> int | None:
+    """``env.gru_size``: the size of a GRU agent's hidden state, which the env carries between
+    steps (None: a feed-forward agent, the paper's)."""
+    size = env_cfg.get("gru_size")
+    if size is None:
+        return None
+    if isinstance(size, bool) or not isinstance(size, numbers.Integral) or size < 1:
+        raise ValueError(f"env.gru_size must be null or a positive integer, got {size!r}")
+    return int(size)
+
+
 def reward_centring(env_cfg: Mapping[str, Any]) -> tuple[float, float]:
     """(center, scale) of the training reward: ``env.reward_center`` / ``reward_scale``, null ones by
     ``env.observation`` (``REWARD_CENTRING``)."""
@@ -81,14 +92,15 @@ def reward_centring(env_cfg: Mapping[str, Any]) -> tuple[float, float]:
 def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs: int, seed: int,
              device: str = "cpu", centred: bool = True, threads: int | None = None, snapshot: Mapping | None = None,
              **task_overrides):
-    """A batched LaserCavityEnv, with the paper's reward centring if ``centred`` and the last
-    ``env.history`` observations stacked (TorchRL's ``CatFrames``) if more than one; with a
+    """A batched LaserCavityEnv, with the paper's reward centring if ``centred``, the last
+    ``env.history`` observations stacked (TorchRL's ``CatFrames``) if more than one, and a GRU
+    agent's state carried (``recurrent_memory``) with ``env.gru_size``; with a
     ``snapshot`` (``LaserCavityEnv.snapshot()``) its first reset continues that state."""
     if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or num_envs < 1:
         raise ValueError(f"env.num_envs must be a positive integer, got {num_envs!r}")
     if threads:
         torch.set_num_threads(int(threads))
-    history = history_length(env_cfg)
+    history, memory = history_length(env_cfg), gru_size(env_cfg)
     centring = reward_centring(env_cfg) if centred else None
     task, params = make_task(env_cfg, stage_cfg, **task_overrides), make_params(env_cfg)
     try:
@@ -102,4 +114,6 @@ def make_env(env_cfg: Mapping[str, Any], stage_cfg: Mapping[str, Any], num_envs:
         transforms.append(stacked_history(history, policy_keys(env.task)))
     if centring is not None:
         transforms.append(centred_reward(*centring))
+    if memory is not None:
+        transforms += recurrent_memory(memory)
     return TransformedEnv(env, Compose(*transforms)) if transforms else env

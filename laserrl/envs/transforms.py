@@ -20,3 +20,15 @@ def stacked_history(length: int, keys: Sequence[str]) -> CatFrames:
     """The last ``length`` observations of each of ``keys``, concatenated along the last axis
     (oldest first); a (partial) reset fills a cavity's history with its first observation."""
     return CatFrames(N=int(length), dim=-1, in_keys=list(keys), padding="same")
+
+
+def recurrent_memory(size: int) -> list:
+    """What an env carries for a GRU agent with a hidden state of ``size``: TorchRL's
+    ``InitTracker`` (``is_init``: the first step of an episode, where the GRU starts afresh) and
+    the ``GRUModule``'s primer (``recurrent_state``, zeros at a reset, carried from step to step)."""
+    from torchrl.envs.transforms import InitTracker
+    from torchrl.modules import GRUModule
+
+    gru = GRUModule(input_size=1, hidden_size=int(size), in_keys=["embedding", "recurrent_state"],
+                    out_keys=["memory", ("next", "recurrent_state")])
+    return [InitTracker(), gru.make_tensordict_primer()]

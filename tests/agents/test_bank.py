@@ -63,6 +63,10 @@ def test_an_ensemble_needs_models_with_the_same_actions():
         MeanQ([_qnet(0, 3), _qnet(1, 9)])
     with pytest.raises(ValueError, match="at least one"):
         MeanQ([])
+    from laserrl.agents.qnet import RecurrentMeasuredQNet
+
+    with pytest.raises(ValueError, match="a recurrent one .* keeps a state of its own"):
+        MeanQ([RecurrentMeasuredQNet(3, bins=8), RecurrentMeasuredQNet(3, bins=8)])
 
 
 class _Constant(torch.nn.Module):

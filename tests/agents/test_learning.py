@@ -28,13 +28,15 @@ STARTS = [-40.0, -38.0, -36.0, -34.0]
     ["agent.n_steps=3"],  # n-step returns
     # what instruments read (no fields), the last two readings stacked, the readings' reward
     ["agent.n_steps=1", "env.observation=measured", "env.history=2"],
-], ids=["one-step", "n-step", "measured-history"])
+    # what instruments read, remembered by a GRU trained on sequences of 8 steps (16 cavities x 8)
+    ["agent.n_steps=1", "env.observation=measured", "env.gru_size=32", "collector.frames_per_batch=128"],
+], ids=["one-step", "n-step", "measured-history", "measured-gru"])
 def test_greedy_policy_beats_random_policy(tmp_path, variant):
-    overrides = [*variant,
+    overrides = ["collector.frames_per_batch=64", *variant,
         f"run_dir={tmp_path}", "seed=0", "logger=none", "env.compile=false", "env.num_envs=16",
         "env.max_round_trips=5", "stage.init_angles_deg.alpha1=[-40,-34]", "stage.max_steps=8",
         "train.total_frames=2048", "train.progress=false", "train.plots=false",
-        "collector.frames_per_batch=64", "replay.init_random_frames=256", "optim.batch_size=64",
+        "replay.init_random_frames=256", "optim.batch_size=64",
         "optim.updates_per_frame=0.5", "optim.lr=1e-3", "agent.gamma=0.9",
         "agent.exploration.decay_frames=500", "agent.exploration.end=0.05",
         "agent.network.channels=[8,8]", "agent.network.pool=4", "agent.network.hidden=[64]",

@@ -36,3 +36,66 @@ def test_fields_drive_the_output():
 def test_invalid_sizes_are_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         FieldQNet(**kwargs)
+
+
+def _recurrent_inputs(B, T, bins=8, points=4, gru_size=6, seed=0):
+    from tensordict import TensorDict
+
+    g = torch.Generator().manual_seed(seed)
+    td = TensorDict(spectrum=torch.rand(B, T, bins, generator=g), energy=torch.rand(B, T, 1, generator=g) + 0.1,
+                    autocorrelation=torch.rand(B, T, points, generator=g), angles=torch.rand(B, T, 4, generator=g) - 0.5,
+                    recurrent_state=torch.zeros(B, T, 1, gru_size), is_init=torch.zeros(B, T, 1, dtype=torch.bool),
+                    batch_size=[B, T])
+    td["is_init"][:, 0] = True
+    if T > 3:
+        td["is_init"][0, 3] = True  # a new episode within the first sequence
+    return td
+
+
+def test_recurrent_qnet_over_a_sequence_equals_stepping_it():
+    # learning runs the GRU over stored sequences; acting runs it one step at a time, carrying the state
+    from torchrl.modules import set_recurrent_mode
+
+    from laserrl.agents.qnet import RecurrentMeasuredQNet
+
+    torch.manual_seed(0)
+    net = RecurrentMeasuredQNet(5, bins=8, points=4, gru_size=6, hidden=(16, 12))
+    module, td = net.td_module(), _recurrent_inputs(3, 7)
+    with set_recurrent_mode(True):
+        q_sequence = module(td.clone())["action_value"]
+    state, steps = torch.zeros(3, 1, 6), []
+    for t in range(7):
+        out = module(td[:, t].clone().set("recurrent_state", state))
+        steps.append(out["action_value"])
+        state = out["next", "recurrent_state"]
+    torch.testing.assert_close(torch.stack(steps, 1), q_sequence)
+    assert q_sequence.shape == (3, 7, 5)
+
+
+def test_recurrent_qnet_remembers_what_came_before():
+    from laserrl.agents.qnet import RecurrentMeasuredQNet
+
+    torch.manual_seed(0)
+    net = RecurrentMeasuredQNet(5, bins=8, points=4, gru_size=6, hidden=(16,))
+    module = net.td_module()
+    a, b = _recurrent_inputs(2, 2, seed=1), _recurrent_inputs(2, 2, seed=2)
+    b[:, 1] = a[:, 1]  # the same second observation after different first ones
+    q = []
+    for td in (a, b):
+        first = module(td[:, 0].clone())
+        q.append(module(td[:, 1].clone().set("recurrent_state", first["next", "recurrent_state"]))["action_value"])
+    assert not torch.allclose(q[0], q[1])
+    # ... and forgets at the start of an episode
+    restart = [module(td[:, 1].clone().set("is_init", torch.ones(2, 1, dtype=torch.bool))
+                      .set("recurrent_state", torch.randn(2, 1, 6)))["action_value"] for td in (a, b)]
+    torch.testing.assert_close(restart[0], restart[1])
+
+
+def test_recurrent_qnet_runs_only_as_a_tensordict_module():
+    from laserrl.agents.qnet import RecurrentMeasuredQNet
+
+    net = RecurrentMeasuredQNet(3, bins=8)
+    with pytest.raises(TypeError, match="keeps a state between steps"):
+        net(torch.zeros(1, 8), torch.ones(1, 1), torch.zeros(1, 4))
+    with pytest.raises(ValueError, match="gru_size"):
+        RecurrentMeasuredQNet(3, bins=8, gru_size=0)

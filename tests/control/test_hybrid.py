@@ -74,3 +74,24 @@ def test_deep_rl_controller_moves_angles_as_the_env_actions_do():
     command = rl.act(TensorDict(fields=torch.zeros(9, 4, 8), angles=torch.zeros(9, 4), batch_size=[9]), angles)
     deltas = action_to_deltas(torch.arange(9), steps)
     assert torch.equal(command[:, [0, 2]], deltas) and torch.equal(command[:, [1, 3]], angles[:, [1, 3]])
+
+
+def test_deep_rl_carries_a_recurrent_policys_state_from_step_to_step():
+    class Counter:
+        """Scripted recurrent policy: its state counts the steps since is_init; action = the count mod 3."""
+
+        in_keys = ["angles", "recurrent_state", "is_init"]
+
+        def __call__(self, td):
+            state = torch.where(td["is_init"][..., None], 0.0, td["recurrent_state"]) + 1
+            td.set(("next", "recurrent_state"), state)
+            return td.set("action", state[:, 0, 0].long() % 3)
+
+    rl = DeepRL(Counter(), ["alpha1"], [1.0])
+    # the plant's observation carries the state's shape (zeros: what the env's primer writes every step)
+    obs = TensorDict(angles=torch.zeros(2, 4), recurrent_state=torch.zeros(2, 1, 5), batch_size=[2])
+    angles = torch.zeros(2, 4, dtype=torch.float64)
+    moves = [float(rl.act(obs, angles)[0, 0]) for _ in range(4)]
+    assert moves == [0.0, 1.0, -1.0, 0.0]  # counts 1, 2, 3, 4: actions 1, 2, 0, 1
+    rl.reset(obs, angles)
+    assert float(rl.act(obs, angles)[0, 0]) == 0.0  # afresh: count 1

@@ -277,3 +277,5 @@ def test_measured_observation_passes_the_checker():
     assert obs["autocorrelation"].shape == (16,) and "r" in info
     with pytest.raises(ConfigError, match="history: the Gymnasium envs give one observation per step"):
         gymnasium.make(SISO, history=2, **measured)
+    with pytest.raises(ConfigError, match="gru_size: the Gymnasium envs give observations only"):
+        gymnasium.make(SISO, gru_size=8, **measured)

@@ -78,6 +78,26 @@ def test_the_measured_network_reads_the_stacked_readings():
     assert qnet.in_keys == ("spectrum", "energy", "angles")
 
 
+def test_the_env_carries_a_recurrent_agents_state_and_restarts_it_at_a_reset():
+    env_cfg = {**ENV, "gru_size": 8}
+    env = make_env(env_cfg, STAGE, 3, seed=0)
+    check_env_specs(env)
+    net = {"channels": [8], "kernel_size": 3, "pool": 2, "hidden": [16, 16], "negative_slope": 0.01}
+    torch.manual_seed(0)
+    actor = make_actor(build_qnet(3, env_cfg, net), env.action_spec_unbatched)
+    td = env.reset()
+    assert td["is_init"].all() and not td["recurrent_state"].any() and td["recurrent_state"].shape == (3, 1, 8)
+    rollout = env.rollout(3, actor, auto_reset=False, tensordict=td)
+    # each step starts from the state the step before left
+    assert torch.equal(rollout["recurrent_state"][:, 1:], rollout["next", "recurrent_state"][:, :-1])
+    assert rollout["recurrent_state"][:, 1:].abs().sum() > 0 and not rollout["is_init"][:, 1:].any()
+    # a partial reset restarts the reset cavity's memory only
+    last = rollout[:, -1]["next"].clone().set("_reset", torch.tensor([[True], [False], [False]]))
+    out = env.reset(last)
+    assert not out["recurrent_state"][0].any() and out["is_init"][0] and not out["is_init"][1:].any()
+    assert torch.equal(out["recurrent_state"][1:], last["recurrent_state"][1:])
+
+
 @pytest.mark.parametrize("change, message", [
     ({"observation": "pixels"}, r"env.observation must be one of \('fields', 'measured'\)"),
     ({"history": 0}, "env.history must be a positive integer"),
