@@ -119,9 +119,10 @@ def model_metadata(config: Mapping[str, Any], num_actions: int, **extra) -> dict
         "actions": {"controlled": list(stage["controlled"]), "steps_deg": list(stage["steps_deg"]),
                     "encoding": ACTION_ENCODING},
         "K": stage.get("K"), "physics": dict(config["env"].get("physics", {})),
-        # what the network reads and remembers (the env config has the details: instruments, history)
+        # what the network reads and remembers (the env config has the details: instruments, history, GRU)
         "observation": config["env"].get("observation", "fields"),
-        "memory": {"history": int(config["env"].get("history", 1))},
+        "memory": {"history": int(config["env"].get("history", 1)),
+                   **({"gru_size": int(config["env"]["gru_size"])} if config["env"].get("gru_size") is not None else {})},
         "config": dict(config), **extra,
     }
 

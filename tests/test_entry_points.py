@@ -180,6 +180,33 @@ def test_any_k_experiment_trains_one_measured_agent_over_the_K_range(tmp_path):
     assert meta["config"]["env"]["physics_spread"] == 0.1  # trained on cavities within +-10 % of the nominal one
 
 
+def test_any_k_experiment_with_a_gru_records_its_memory_and_evaluates(tmp_path):
+    """experiment=miso_any_k_gru (its four-controller stage, tiny): sequences of 4 steps in replay, the
+    GRU recorded in the model card, and laserrl-eval and laserrl-control run the model as it was saved."""
+    tiny = ["threads=1", "env.num_envs=8", "env.max_round_trips=3", "env.compile=false", "env.physics.n=64",
+            "env.physics.z_steps=2", "env.instruments.spectrum_span=6", "env.instruments.spectrum_bins=16",
+            "env.instruments.autocorrelation_points=16", "env.gru_size=8", "collector.frames_per_batch=32",
+            "replay.init_random_frames=32", "optim.batch_size=16", "logger=none", "train.plots=false",
+            "train.progress=false"]
+    res = run("laserrl-train", "experiment=miso_any_k_gru", *tiny, "curriculum.stages=[miso]", "curriculum.total_frames=[64]",
+              "curriculum.max_minutes=[null]", "+curriculum.stage_overrides.miso.protocol.steps=3",
+              "+curriculum.stage_overrides.miso.max_steps=4", "curriculum.config_overrides.miso.train.eval_every_frames=32",
+              "curriculum.config_overrides.miso.eval.K=[0.1]", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    model = tmp_path / "01-miso" / "model"
+    meta = json.loads((model / "model.json").read_text())
+    assert (meta["observation"], meta["memory"]) == ("measured", {"history": 1, "gru_size": 8})
+    res = run("laserrl-eval", f"checkpoint={model}", "eval.steps=3", "eval.K=[0.0,0.3]", "eval.repeats=2",
+              "eval.plots=false", "eval.compile=false", f"hydra.run.dir={tmp_path / 'eval'}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert len(json.loads((tmp_path / "eval" / "eval.json").read_text())["per_start"]) == 4
+    res = run("laserrl-control", "controller=all", "scenario=constant", f"checkpoint={model}", "num_cavities=2",
+              "scenario.steps=3", "compile=false", "plots=false", "progress=false", f"hydra.run.dir={tmp_path / 'control'}",
+              cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert set(json.loads((tmp_path / "control" / "control.json").read_text())["controllers"]) >= {"rl", "hybrid"}
+
+
 def test_transfer_then_bank_generalisation(trained, tmp_path):
     """experiment=transfer_k fine-tunes the base to another K (and trains from scratch, here
     through a curriculum whose earlier stage is the base: transfer.scratch_from, whose frames

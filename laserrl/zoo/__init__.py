@@ -47,7 +47,8 @@ def describe(name: str) -> str:
     k = c["card"]
     lines = [f"zoo:{name}: stage {c['stage']} (turns {', '.join(c['actions']['controlled'])} by "
              f"{c['actions']['steps_deg']} deg), K = {c['K']}, observation {c['observation']}"
-             + (f" (the last {c['memory']['history']} stacked)" if c["memory"].get("history", 1) > 1 else ""),
+             + (f" (the last {c['memory']['history']} stacked)" if c["memory"].get("history", 1) > 1 else "")
+             + (f", remembered by a GRU of {c['memory']['gru_size']} units" if c["memory"].get("gru_size") else ""),
              f"  trained by:  {k.get('command') or 'not recorded'}",
              f"  commit:      {k.get('commit') or 'not recorded'} (laserrl {k.get('laserrl_version')})",
              f"  machine:     {k.get('machine') or 'not recorded'}, {k.get('date') or ''}",
