@@ -343,6 +343,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     replay = make_replay(cfg.replay.kind, cfg.replay.size, cfg.optim.batch_size, cfg.replay.alpha, cfg.replay.beta,
                          sequence=replay_sequence(cfg))
     n_step = make_n_step(int(agent_n_steps(cfg)), float(cfg.agent.gamma))  # None: one-step TD
+    sequences = replay_sequence(cfg) > 1  # a recurrent agent stores each cavity's steps of a batch together
 
     # --- where the run stands: new, or a checkpoint's state (all read before anything is written)
     run = RunCounters(next_eval=loop.eval_every_frames or math.inf)
@@ -396,7 +397,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                 between_batches = False
                 t_batch = time.perf_counter()
                 run.frames += data.numel()
-                store(replay, n_step, data, sequences=replay_sequence(cfg) > 1)
+                store(replay, n_step, data, sequences)
                 agent.explore(run.frames)
                 if run.frames >= loop.init_random_frames and len(replay) > 0:  # n-step: stored a batch late
                     for _ in range(max(1, int(round(data.numel() * loop.updates_per_frame)))):

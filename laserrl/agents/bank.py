@@ -26,7 +26,7 @@ from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.modules import QValueModule
 
-from laserrl.agents.qnet import FieldQNet, MeasuredQNet
+from laserrl.agents.qnet import FieldQNet, MeasuredQNet, is_recurrent
 
 __all__ = ["MaxQBank", "MeanQ", "TrialBank", "TrialRule", "make_bank_actor", "make_trial_actor"]
 
@@ -39,7 +39,7 @@ def _common_action_count(qnets: list[nn.Module], group: str, of_group: str) -> i
     ``group`` / ``of_group`` name the collection in the messages ("a model bank" / "a bank")."""
     if not qnets:
         raise ValueError(f"{group} needs at least one Q-network")
-    if any(getattr(q, "recurrent", False) for q in qnets):
+    if any(is_recurrent(q) for q in qnets):
         raise ValueError(f"{group} combines feed-forward Q-networks; a recurrent one (env.gru_size) keeps a state of "
                          "its own that the combined models do not share")
     actions = {q.num_actions for q in qnets}

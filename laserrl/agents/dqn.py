@@ -21,7 +21,7 @@ from torchrl.envs.transforms import MultiStepTransform
 from torchrl.modules import EGreedyModule, QValueActor, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from laserrl.agents.qnet import FieldQNet, MeasuredQNet, RecurrentMeasuredQNet
+from laserrl.agents.qnet import FieldQNet, MeasuredQNet, RecurrentMeasuredQNet, is_recurrent
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 
@@ -75,11 +75,6 @@ def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet |
         raise ConfigError("env.gru_size needs env.observation=measured (the fields network has no memory)")
     return make_qnet(num_actions, int((env_cfg.get("physics") or {}).get("n", 256)), network["channels"],
                      network["kernel_size"], network["pool"], network["hidden"], network["negative_slope"])
-
-
-def is_recurrent(qnet) -> bool:
-    """Whether ``qnet`` keeps a state between steps (``RecurrentMeasuredQNet``)."""
-    return bool(getattr(qnet, "recurrent", False))
 
 
 def make_actor(qnet: FieldQNet | MeasuredQNet | RecurrentMeasuredQNet, action_spec) -> QValueActor:

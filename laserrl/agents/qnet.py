@@ -1,6 +1,7 @@
 """Q-networks: the paper's (convolutions and max-pooling over the intra-cavity fields, the
 waveplate angles joined after the convolutions, then fully connected layers with leaky ReLU,
-giving one Q-value per joint action), and one for what instruments measure.
+giving one Q-value per joint action), and two for what instruments measure: feed-forward over the
+last readings, and with a GRU's memory of the episode.
 
 Each network names the observation keys it reads (``in_keys``) and its ``observation``
 (``laserrl.envs.laser_env.LaserTask.observation``)."""
@@ -47,13 +48,7 @@ class FieldQNet(nn.Module):
             in_ch = int(ch)
         self.features = nn.Sequential(*layers)
         flat = in_ch * (n // pool ** len(channels))
-        head: list[nn.Module] = []
-        width = flat + 8
-        for h in hidden:
-            head += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
-            width = int(h)
-        head.append(nn.Linear(width, num_actions))
-        self.head = nn.Sequential(*head)
+        self.head = leaky_mlp(flat + 8, hidden, num_actions, negative_slope)
         self.num_actions = num_actions
         self.n = n
 
@@ -64,44 +59,39 @@ class FieldQNet(nn.Module):
         return q.reshape(*lead, self.num_actions)
 
 
+def leaky_mlp(width: int, hidden: Sequence[int], out: int, negative_slope: float) -> nn.Sequential:
+    """Linear layers of widths ``hidden``, each followed by leaky ReLU, then a linear layer to ``out``."""
+    layers: list[nn.Module] = []
+    for h in hidden:
+        layers += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
+        width = int(h)
+    layers.append(nn.Linear(width, out))
+    return nn.Sequential(*layers)
+
+
 def angle_encoding(a: torch.Tensor) -> torch.Tensor:
     """(sin 2a, cos 2a) of angles in radians, last axis doubled: continuous across the wrap at +-90 deg."""
     return torch.cat([torch.sin(2 * a), torch.cos(2 * a)], dim=-1)
 
 
-class MeasuredQNet(nn.Module):
-    """Q(s, .) for s = what instruments read (``laserrl.physics.instruments``), the last
-    ``history`` observations of each key stacked along its last axis (oldest first):
-    ``spectrum`` (..., history * bins) OSA powers, ``energy`` (..., history) the pulse energy W,
-    ``autocorrelation`` (..., history * points) if ``points``, ``angles`` (..., history * 4).
+class MeasuredFeatures(nn.Module):
+    """What instruments read (``laserrl.physics.instruments``), scaled and joined: the last ``history``
+    observations of each of ``in_keys`` stacked along its last axis (oldest first), ``spectrum``
+    (..., history * bins), ``energy`` (..., history), ``autocorrelation`` (..., history * points) if
+    ``points``, ``angles`` (..., history * 4), give (..., ``width``) = history * (bins + 1 + points + 8):
+    log10 of the spectrum's shape S_j / sum S (floored at 1e-9), log10 W, the autocorrelation as read
+    and the angles as (sin 2a, cos 2a)."""
 
-    Each observation enters as log10 of the spectrum's shape S_j / sum S (floored at 1e-9),
-    log10 W, the autocorrelation as read and the angles as (sin 2a, cos 2a); the stacked
-    observations, joined, pass fully connected layers with leaky ReLU (``hidden``).
-    """
-
-    observation = "measured"
-
-    def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1,
-                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+    def __init__(self, bins: int, points: int = 0, history: int = 1):
         super().__init__()
-        if num_actions < 1:
-            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
         for name, value, low in (("bins", bins, 1), ("points", points, 0), ("history", history, 1)):
             if int(value) != value or value < low:
                 raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
-        self.num_actions, self.bins, self.points, self.history = int(num_actions), int(bins), int(points), int(history)
+        self.bins, self.points, self.history = int(bins), int(points), int(history)
         self.in_keys = ("spectrum", "energy", *(("autocorrelation",) if points else ()), "angles")
-        width = self.history * (self.bins + 1 + self.points + 8)
-        head: list[nn.Module] = []
-        for h in hidden:
-            head += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
-            width = int(h)
-        head.append(nn.Linear(width, num_actions))
-        self.head = nn.Sequential(*head)
+        self.width = self.history * (self.bins + 1 + self.points + 8)
 
-    def features(self, spectrum, energy, *rest) -> torch.Tensor:
-        """The joined, scaled observations (..., history * (bins + 1 + points + 8))."""
+    def forward(self, spectrum, energy, *rest) -> torch.Tensor:
         angles = rest[-1]
         lead, H = angles.shape[:-1], self.history
         s = spectrum.reshape(*lead, H, self.bins)
@@ -112,14 +102,45 @@ class MeasuredQNet(nn.Module):
         parts.append(angle_encoding(angles.reshape(*lead, H, 4)))
         return torch.cat(parts, dim=-1).reshape(*lead, -1)
 
+
+class MeasuredQNet(nn.Module):
+    """Q(s, .) for s = the last ``history`` readings of the instruments, scaled and joined
+    (``MeasuredFeatures``), passed through fully connected layers with leaky ReLU (``hidden``)."""
+
+    observation = "measured"
+
+    def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1,
+                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+        super().__init__()
+        if num_actions < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
+        self.features = MeasuredFeatures(bins, points, history)
+        self.num_actions, self.bins, self.points, self.history = int(num_actions), int(bins), int(points), int(history)
+        self.in_keys = self.features.in_keys
+        self.head = leaky_mlp(self.features.width, hidden, num_actions, negative_slope)
+
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         if len(obs) != len(self.in_keys):
             raise ValueError(f"MeasuredQNet reads {list(self.in_keys)}, got {len(obs)} tensors")
         return self.head(self.features(*obs))
 
 
+def is_recurrent(qnet) -> bool:
+    """Whether ``qnet`` keeps a state between steps (``RecurrentMeasuredQNet``)."""
+    return bool(getattr(qnet, "recurrent", False))
+
+
+def gru_core(input_size: int, gru_size: int):
+    """TorchRL's ``GRUModule`` of a recurrent Q-network: ``embedding`` and ``recurrent_state`` in,
+    ``memory`` and next ``recurrent_state`` out (its primer names the state the env carries)."""
+    from torchrl.modules import GRUModule
+
+    return GRUModule(input_size=int(input_size), hidden_size=int(gru_size), in_keys=["embedding", "recurrent_state"],
+                     out_keys=["memory", ("next", "recurrent_state")])
+
+
 class RecurrentMeasuredQNet(nn.Module):
-    """Q(h_t, .) with a memory: ``MeasuredQNet``'s scaled observations pass a fully connected
+    """Q(h_t, .) with a memory: the scaled observations (``MeasuredFeatures``) pass a fully connected
     layer (``hidden[0]``, leaky ReLU), a GRU (TorchRL's ``GRUModule``) keeps the hidden state
     h_t = GRU(embedding_t, h_{t-1}) across the steps of an episode, and the remaining layers
     (``hidden[1:]``) map h_t to one Q-value per joint action.
@@ -138,32 +159,22 @@ class RecurrentMeasuredQNet(nn.Module):
     def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1, gru_size: int = 64,
                  hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
         super().__init__()
-        from torchrl.modules import GRUModule
-
         if int(gru_size) != gru_size or gru_size < 1:
             raise ValueError(f"gru_size must be an integer >= 1, got {gru_size!r}")
         if not hidden:
             raise ValueError("hidden needs at least one width (the layer before the GRU)")
-        # the observation scaling of the feed-forward network (its head is replaced below)
-        self.observations = MeasuredQNet(num_actions, bins, points, history, hidden=(), negative_slope=negative_slope)
-        del self.observations.head
+        if num_actions < 1:
+            raise ValueError(f"num_actions must be >= 1, got {num_actions}")
+        self.features = MeasuredFeatures(bins, points, history)
         self.num_actions, self.gru_size = int(num_actions), int(gru_size)
-        self.obs_keys = self.observations.in_keys
+        self.obs_keys = self.features.in_keys
         self.in_keys = (*self.obs_keys, "recurrent_state", "is_init")
-        width = self.observations.history * (bins + 1 + points + 8)
-        self.embed = nn.Sequential(nn.Linear(width, int(hidden[0])), nn.LeakyReLU(negative_slope))
-        self.gru = GRUModule(input_size=int(hidden[0]), hidden_size=self.gru_size, in_keys=["embedding", "recurrent_state"],
-                             out_keys=["memory", ("next", "recurrent_state")])
-        head: list[nn.Module] = []
-        width = self.gru_size
-        for h in hidden[1:]:
-            head += [nn.Linear(width, int(h)), nn.LeakyReLU(negative_slope)]
-            width = int(h)
-        head.append(nn.Linear(width, num_actions))
-        self.head = nn.Sequential(*head)
+        self.embed = nn.Sequential(nn.Linear(self.features.width, int(hidden[0])), nn.LeakyReLU(negative_slope))
+        self.gru = gru_core(hidden[0], self.gru_size)
+        self.head = leaky_mlp(self.gru_size, hidden[1:], num_actions, negative_slope)
 
     def embedding(self, *obs: torch.Tensor) -> torch.Tensor:
-        return self.embed(self.observations.features(*obs))
+        return self.embed(self.features(*obs))
 
     def td_module(self):
         """observations -> ``embedding`` -> GRU (``memory``, next ``recurrent_state``) -> ``action_value``."""
@@ -171,10 +182,6 @@ class RecurrentMeasuredQNet(nn.Module):
 
         return TensorDictSequential(TensorDictModule(self.embedding, in_keys=list(self.obs_keys), out_keys=["embedding"]),
                                     self.gru, TensorDictModule(self.head, in_keys=["memory"], out_keys=["action_value"]))
-
-    def make_primer(self):
-        """The env transform that carries the GRU's hidden state from step to step (zeros at a reset)."""
-        return self.gru.make_tensordict_primer()
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         raise TypeError("RecurrentMeasuredQNet keeps a state between steps: run it as td_module() on an env "

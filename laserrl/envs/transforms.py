@@ -27,8 +27,7 @@ def recurrent_memory(size: int) -> list:
     ``InitTracker`` (``is_init``: the first step of an episode, where the GRU starts afresh) and
     the ``GRUModule``'s primer (``recurrent_state``, zeros at a reset, carried from step to step)."""
     from torchrl.envs.transforms import InitTracker
-    from torchrl.modules import GRUModule
 
-    gru = GRUModule(input_size=1, hidden_size=int(size), in_keys=["embedding", "recurrent_state"],
-                    out_keys=["memory", ("next", "recurrent_state")])
-    return [InitTracker(), gru.make_tensordict_primer()]
+    from laserrl.agents.qnet import gru_core
+
+    return [InitTracker(), gru_core(1, size).make_tensordict_primer()]  # the primer depends on the state's size only
