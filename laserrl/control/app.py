@@ -128,12 +128,25 @@ def _check(cfg: DictConfig) -> None:
         _number(cfg, "threads", low=1, integer=True)
     if cfg.metric not in METRICS:
         raise ConfigError(f"metric must be one of {list(METRICS)}, got {cfg.metric!r}")
-    if cfg.controller.get("name") == "all" and cfg.metric_controller not in ALL:
-        raise ConfigError(f"metric_controller must be one of {list(ALL)}, got {cfg.metric_controller!r}")
+    if cfg.controller.get("name") == "all":
+        names = _all_names(cfg.controller)
+        if len(names) > 1 and cfg.metric_controller not in names:
+            raise ConfigError(f"metric_controller must be one of the controllers run {names}, got {cfg.metric_controller!r}")
     if cfg.controlled is not None:
         names = list(cfg.controlled)
         if not names or len(set(names)) != len(names) or any(n not in ANGLE_NAMES for n in names):
             raise ConfigError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {names!r}")
+
+
+def _all_names(ccfg) -> list[str]:
+    """The controllers ``controller=all`` runs: ``controller.only`` (some of them) or every one."""
+    only = ccfg.get("only")
+    if only is None:
+        return list(ALL)
+    names = [only] if isinstance(only, str) else list(only)
+    if not names or len(set(names)) != len(names) or any(n not in ALL for n in names):
+        raise ConfigError(f"controller.only must list distinct controllers of {list(ALL)}, got {names!r}")
+    return names
 
 
 def _rounded(x: np.ndarray, digits: int = 5) -> list:
@@ -152,7 +165,7 @@ def run_control(cfg: DictConfig) -> dict:
     except TypeError as err:
         raise ConfigError(f"scenario: {err}") from None
     ccfg = container["controller"]
-    names = list(ALL) if ccfg.get("name") == "all" else [ccfg.get("name")]
+    names = _all_names(ccfg) if ccfg.get("name") == "all" else [ccfg.get("name")]
     configs = {n: ccfg[n] for n in names} if ccfg.get("name") == "all" else {names[0]: ccfg}
     where = {n: (f"controller.{n}" if ccfg.get("name") == "all" else "controller") for n in names}
 

@@ -77,6 +77,9 @@ def _run(overrides, tmp_path):
     (["controller=esc", "plates.noise_deg=-1"], "plates.noise_deg"),
     (["controller=esc", "plates.backlash_deg=.nan"], "plates.backlash_deg"),
     (["controller=esc", "+plates.friction=1"], "plates: .*friction"),
+    (["controller=all", "controller.only=[esc,bogus]"], "controller.only"),
+    (["controller=all", "controller.only=[esc,esc]"], "controller.only"),
+    (["controller=all", "controller.only=[esc,ga]"], "metric_controller"),
 ])
 def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
     with pytest.raises(ValueError, match=match):
@@ -151,6 +154,13 @@ def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
         first = out["traces"][name]["angles_deg"][0][0][0]  # alpha1 after the first step, true angle
         assert starts[0][0] == 60.0 and abs(first - 60.0) < 15, (name, first)  # the scenario's start, not the training's
     assert all(0.0 <= out["results"][n]["summary"]["frac_locked"]["mean"] <= 1.0 for n in ALL)
+
+
+def test_all_runs_only_the_controllers_named(tmp_path):
+    out = _run(["controller=all", "controller.only=[ga,esc]", "metric_controller=esc"], tmp_path)
+    assert out["controllers"] == ["ga", "esc"] and set(out["results"]) == {"ga", "esc"}
+    table = (tmp_path / "control.md").read_text()
+    assert "| esc |" in table and "| ga |" in table and "| hill_climb |" not in table
 
 
 def test_sweep_metric(tmp_path):
