@@ -134,8 +134,13 @@ def _check(cfg: DictConfig) -> None:
             raise ConfigError(f"metric_controller must be one of the controllers run {names}, got {cfg.metric_controller!r}")
     if cfg.controlled is not None:
         names = list(cfg.controlled)
-        if not names or len(set(names)) != len(names) or any(n not in ANGLE_NAMES for n in names):
+        if not _distinct_of(names, ANGLE_NAMES):
             raise ConfigError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {names!r}")
+
+
+def _distinct_of(names: list, allowed) -> bool:
+    """Whether ``names`` is a non-empty list of distinct members of ``allowed``."""
+    return bool(names) and len(set(names)) == len(names) and all(n in allowed for n in names)
 
 
 def _all_names(ccfg) -> list[str]:
@@ -144,7 +149,7 @@ def _all_names(ccfg) -> list[str]:
     if only is None:
         return list(ALL)
     names = [only] if isinstance(only, str) else list(only)
-    if not names or len(set(names)) != len(names) or any(n not in ALL for n in names):
+    if not _distinct_of(names, ALL):
         raise ConfigError(f"controller.only must list distinct controllers of {list(ALL)}, got {names!r}")
     return names
 
