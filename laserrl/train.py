@@ -368,13 +368,14 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     eval_every, every, target_rate = loop.eval_every_frames, loop.checkpoint_every_frames, loop.stop_at_success
     next_checkpoint = (run.frames // every + 1) * every if every else math.inf
     max_seconds = 60.0 * loop.max_minutes if loop.max_minutes else math.inf
-    if eval_every and target_rate is not None and resume is None:
-        # a warm-started policy may already meet the target: then it needs no frames at all
+    if eval_every and resume is None and (target_rate is not None or (loop.keep_best and cfg.init_from)):
+        # a warm-started policy may already meet the target: then it needs no frames at all; and with
+        # train.keep_best its weights are a candidate, so that fine-tuning cannot end worse than it began
         success, final_r = greedy_success(cfg, agent.greedy, 0, logger)
         if loop.keep_best:
             keep_if_best(run, agent, best_weights, success, final_r)
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
-        if success >= target_rate:
+        if target_rate is not None and success >= target_rate:
             run.frames_to_success = 0
     out_of_time = time.perf_counter() - started > max_seconds
     if out_of_time and run.frames_to_success is None:

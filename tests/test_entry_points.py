@@ -140,6 +140,18 @@ def test_warm_start_same_stage_grown_stage_and_refusal(trained, tmp_path):
     assert not (tmp_path / "bad" / "checkpoints").exists()
 
 
+def test_warm_started_keep_best_run_validates_its_starting_weights(trained, tmp_path):
+    # fine-tuning with train.keep_best: the warm start is a candidate, so the run cannot end worse than it began
+    out, _ = trained
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", "train.keep_best=true", "train.eval_every_frames=10000",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    history = json.loads((tmp_path / "history.json").read_text())
+    assert history[0]["frames"] == 0 and "eval/success_rate" in history[0]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["best"]["frames"] in (0, 64) and summary["frames_to_success"] is None
+
+
 def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
     # experiment=smoke keeps it tiny; the curriculum keys are those of experiment=curriculum
     res = run("laserrl-train", *SMOKE, "+curriculum.stages=[siso,duo]",
