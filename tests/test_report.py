@@ -110,6 +110,7 @@ def test_report_numbers_match_what_it_measured(smoke):
     assert any_k["K"] == [0.0, 0.2] and any_k["steps"] == 3
     ok = sum(v["success_rate"] >= 0.9 for v in any_k["by_K"].values())
     assert f"({ok} / 2 values" in claims["any_k"]["laserrl"] and "the bank told K" in claims["any_k"]["laserrl"]
+    assert "the last 4 readings stacked" in claims["any_k"]["note"]  # the memory of zoo:miso-any-k
 
 
 def _compose(tmp_path, *overrides):

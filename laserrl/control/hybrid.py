@@ -6,7 +6,8 @@ The hybrid's rule (per cavity, the paper's section 4):
   from the current angles (estimates = angles, filters in the steady state of the
   current r);
 * ESC -> deep RL when r < ``unlock_r`` for ``unlock_steps`` consecutive steps (the lock
-  is lost, e.g. after a jump of K that ESC's local search cannot follow).
+  is lost, e.g. after a jump of K that ESC's local search cannot follow); with
+  ``restart_memory`` a recurrent agent's memory restarts there, as at an episode's start.
 
 Both counters restart at every switch. r is the reward the controllers read
 (``laserrl.control.esc.observed_r``): the paper's r, or with measured observations the
@@ -35,8 +36,8 @@ class DeepRL:
     ``action``; the angles move by ``action_to_deltas(action, steps_deg)`` as in the env.
 
     A recurrent policy (one that reads ``recurrent_state``, ``env.gru_size``) keeps its state
-    here from one call to the next, from zero at ``reset``; it reads every step's observation,
-    also while the hybrid's ESC moves the plates."""
+    here from one call to the next, from zero at ``reset`` and, per cavity, at ``restart(mask)``;
+    it reads every step's observation, also while the hybrid's ESC moves the plates."""
 
     name = "rl"
 
@@ -48,9 +49,14 @@ class DeepRL:
         self.steps = torch.tensor([float(s) for s in steps_deg], dtype=torch.float64)
 
         self._memory = None  # a recurrent policy's state after the last step (None: start afresh)
+        self._restart = None  # (B,) cavities whose memory restarts at the next step (None: none)
 
     def reset(self, obs, angles_deg) -> None:
-        self._memory = None
+        self._memory, self._restart = None, None
+
+    def restart(self, mask: torch.Tensor) -> None:
+        """Restart the recurrent memory of the cavities in ``mask`` at the next step (a new search)."""
+        self._restart = mask.clone() if self._restart is None else self._restart | mask
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -60,7 +66,11 @@ class DeepRL:
             if recurrent:
                 first = self._memory is None  # the plant's env carries the state's shape (make_env's primer)
                 td["recurrent_state"] = torch.zeros_like(td["recurrent_state"]) if first else self._memory
-                td["is_init"] = torch.full((*td.batch_size, 1), first, dtype=torch.bool, device=td.device)
+                init = torch.full((*td.batch_size, 1), first, dtype=torch.bool, device=td.device)
+                if self._restart is not None:  # the GRU zeroes the state where is_init is set
+                    init = init | self._restart.reshape(init.shape).to(init.device)
+                    self._restart = None
+                td["is_init"] = init
             out = self.policy(td)
             if recurrent:
                 self._memory = out["next", "recurrent_state"]
@@ -78,6 +88,7 @@ class HybridRule:
     lock_steps: int = 1
     unlock_r: float = 0.1
     unlock_steps: int = 3
+    restart_memory: bool = False  # a recurrent agent's memory restarts when the lock is lost
 
     def __post_init__(self):
         for name in ("lock_r", "unlock_r"):
@@ -86,6 +97,8 @@ class HybridRule:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         for name in ("lock_steps", "unlock_steps"):
             integer(self, name, 1)
+        if not isinstance(self.restart_memory, bool):
+            raise ValueError(f"restart_memory must be true or false, got {self.restart_memory!r}")
         if self.unlock_r > self.lock_r:
             raise ValueError(f"unlock_r ({self.unlock_r}) must be <= lock_r ({self.lock_r}), or the modes would chatter")
 
@@ -124,6 +137,8 @@ class Hybrid:
         self._above = torch.where(switched, 0, self._above)
         self._below = torch.where(switched, 0, self._below)
         self.switches += switched.long()
+        if self.rule.restart_memory and bool(release.any()):
+            self.rl.restart(release)
         # ESC runs for every cavity (its state is restarted on engagement), and is used where engaged
         cmd_esc = self.esc.act(obs, angles_deg)
         cmd_rl = self.rl.act(obs, angles_deg)

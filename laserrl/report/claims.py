@@ -451,7 +451,9 @@ def _any_k(ctx) -> Claim:
                  f"{ctx.any_k['success_rate']:.2f}, mean steps to lock {ctx.any_k['mean_steps_to_lock'] or float('nan'):.1f})"
                  + (f"; on the same draws: {', '.join(others)}" if others else ""),
                  ["any_k", "generalisation"],
-                 f"Observation {env.get('observation')}, the last {env.get('history', 1)} readings stacked; trained "
+                 f"Observation {env.get('observation')}, "
+                 + (f"a GRU of {env['gru_size']} units as memory" if env.get("gru_size")
+                    else f"the last {env.get('history', 1)} readings stacked") + "; trained "
                  f"{card.get('frames_since_scratch') or card.get('frames')} frames through the curriculum "
                  f"({(card.get('train_seconds') or 0) / 60:.0f} min in its last stage). docs/measured.md has its "
                  "mismatched cavities and its control under drift.")

@@ -61,7 +61,8 @@ def test_esc_restarts_from_the_current_angles_on_engagement():
 
 @pytest.mark.parametrize("bad, match", [({"unlock_r": 0.2, "lock_r": 0.15}, "unlock_r"), ({"lock_steps": 0}, "lock_steps"),
                                         ({"unlock_steps": 1.5}, "unlock_steps"), ({"lock_r": float("nan")}, "lock_r"),
-                                        ({"lock_steps": float("inf")}, "lock_steps"), ({"unlock_steps": "3"}, "unlock_steps")])
+                                        ({"lock_steps": float("inf")}, "lock_steps"), ({"unlock_steps": "3"}, "unlock_steps"),
+                                        ({"restart_memory": "yes"}, "restart_memory")])
 def test_bad_rule_names_the_value(bad, match):
     with pytest.raises(ValueError, match=match):
         HybridRule(**bad)
@@ -76,17 +77,19 @@ def test_deep_rl_controller_moves_angles_as_the_env_actions_do():
     assert torch.equal(command[:, [0, 2]], deltas) and torch.equal(command[:, [1, 3]], angles[:, [1, 3]])
 
 
+class Counter:
+    """Scripted recurrent policy: its state counts the steps since is_init; action = the count mod 3."""
+
+    in_keys = ["angles", "recurrent_state", "is_init"]
+
+    def __call__(self, td):
+        state = torch.where(td["is_init"][..., None], 0.0, td["recurrent_state"]) + 1
+        td.set(("next", "recurrent_state"), state)
+        self.count = state[:, 0, 0].clone()
+        return td.set("action", state[:, 0, 0].long() % 3)
+
+
 def test_deep_rl_carries_a_recurrent_policys_state_from_step_to_step():
-    class Counter:
-        """Scripted recurrent policy: its state counts the steps since is_init; action = the count mod 3."""
-
-        in_keys = ["angles", "recurrent_state", "is_init"]
-
-        def __call__(self, td):
-            state = torch.where(td["is_init"][..., None], 0.0, td["recurrent_state"]) + 1
-            td.set(("next", "recurrent_state"), state)
-            return td.set("action", state[:, 0, 0].long() % 3)
-
     rl = DeepRL(Counter(), ["alpha1"], [1.0])
     # the plant's observation carries the state's shape (zeros: what the env's primer writes every step)
     obs = TensorDict(angles=torch.zeros(2, 4), recurrent_state=torch.zeros(2, 1, 5), batch_size=[2])
@@ -95,3 +98,27 @@ def test_deep_rl_carries_a_recurrent_policys_state_from_step_to_step():
     assert moves == [0.0, 1.0, -1.0, 0.0]  # counts 1, 2, 3, 4: actions 1, 2, 0, 1
     rl.reset(obs, angles)
     assert float(rl.act(obs, angles)[0, 0]) == 0.0  # afresh: count 1
+    rl.act(obs, angles)
+    rl.restart(torch.tensor([False, True]))  # cavity 1 starts a new search at the next step
+    rl.act(obs, angles)
+    assert rl.policy.count.tolist() == [3.0, 1.0]
+
+
+@pytest.mark.parametrize("restart_memory", [False, True])
+def test_hybrid_restarts_a_recurrent_agents_memory_when_the_lock_is_lost_if_asked(restart_memory):
+    rule = HybridRule(lock_r=0.15, lock_steps=1, unlock_r=0.1, unlock_steps=1, restart_memory=restart_memory)
+    policy = Counter()
+    hybrid = Hybrid(DeepRL(policy, ["alpha1"], [1.0]), ESCParams(), rule, ["alpha1"], 2)
+    angles = torch.zeros(2, 4, dtype=torch.float64)
+
+    def obs(r):
+        return TensorDict(angles=torch.zeros(2, 4), recurrent_state=torch.zeros(2, 1, 5),
+                          r=torch.tensor(r, dtype=torch.float32).reshape(2, 1), batch_size=[2])
+
+    hybrid.reset(obs([0.0, 0.0]), angles)
+    # cavity 0 locks at step 2 and loses the lock at step 3 (back to deep RL); cavity 1 never locks
+    for r0 in [0.05, 0.2, 0.05, 0.05]:
+        hybrid.act(obs([r0, 0.05]), angles)
+    assert hybrid.mode.tolist() == [MODE_RL, MODE_RL] and hybrid.switches.tolist() == [2, 0]
+    # the agent reads every step; restarted at the release (step 3), its count at step 4 is 2, else 4
+    assert policy.count.tolist() == ([2.0, 4.0] if restart_memory else [4.0, 4.0])
