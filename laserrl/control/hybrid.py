@@ -49,14 +49,16 @@ class DeepRL:
         self.steps = torch.tensor([float(s) for s in steps_deg], dtype=torch.float64)
 
         self._memory = None  # a recurrent policy's state after the last step (None: start afresh)
-        self._restart = None  # (B,) cavities whose memory restarts at the next step (None: none)
 
     def reset(self, obs, angles_deg) -> None:
-        self._memory, self._restart = None, None
+        self._memory = None
 
     def restart(self, mask: torch.Tensor) -> None:
-        """Restart the recurrent memory of the cavities in ``mask`` at the next step (a new search)."""
-        self._restart = mask.clone() if self._restart is None else self._restart | mask
+        """Restart the recurrent memory of the cavities in ``mask`` (a new search): the zero state
+        an episode's first step starts from."""
+        if self._memory is not None:
+            mask = mask.to(self._memory.device).reshape(-1, *[1] * (self._memory.dim() - 1))
+            self._memory = torch.where(mask, torch.zeros_like(self._memory), self._memory)
 
     def act(self, obs, angles_deg: torch.Tensor) -> torch.Tensor:
         with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
@@ -66,11 +68,7 @@ class DeepRL:
             if recurrent:
                 first = self._memory is None  # the plant's env carries the state's shape (make_env's primer)
                 td["recurrent_state"] = torch.zeros_like(td["recurrent_state"]) if first else self._memory
-                init = torch.full((*td.batch_size, 1), first, dtype=torch.bool, device=td.device)
-                if self._restart is not None:  # the GRU zeroes the state where is_init is set
-                    init = init | self._restart.reshape(init.shape).to(init.device)
-                    self._restart = None
-                td["is_init"] = init
+                td["is_init"] = torch.full((*td.batch_size, 1), first, dtype=torch.bool, device=td.device)
             out = self.policy(td)
             if recurrent:
                 self._memory = out["next", "recurrent_state"]
