@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from tqdm import tqdm
 
 from laserrl.agents.dqn import DQNAgent, make_n_step, make_replay
@@ -38,7 +38,7 @@ from laserrl.envs.laser_env import LaserCavityEnv, base_env_of
 from laserrl.evaluate import check_eval_config
 from laserrl.resume import (RunCounters, RunInterrupted, RunSaver, StopSignals, env_seed, load_replay, load_run,
                             resume_config, rng_state, set_rng_state)
-from laserrl.validate import ConfigError, check_number, check_one_of
+from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,7 @@ class LoopSettings:
     stop_at_success: float | None = None
     checkpoint_every_frames: int | None = None
     keep_best: bool = False
+    reselect_top: int | None = None
 
     def __post_init__(self):
         check_number(self.total_frames, "train.total_frames", low=1, integer=True)
@@ -68,13 +69,33 @@ class LoopSettings:
             raise ConfigError(f"train.keep_best must be true or false, got {self.keep_best!r}")
         if self.keep_best and not self.eval_every_frames:
             raise ConfigError("train.keep_best needs train.eval_every_frames (the evaluations that choose the weights)")
+        check_number(self.reselect_top, "train.reselect.top", low=2, integer=True, optional=True)
+        if self.reselect_top is not None and not self.keep_best:
+            raise ConfigError("train.reselect needs train.keep_best=true (it validates again the best-validated weights)")
 
     @classmethod
     def from_config(cls, cfg: DictConfig) -> "LoopSettings":
         t = cfg.train
         return cls(t.total_frames, cfg.optim.updates_per_frame, cfg.replay.init_random_frames, t.get("max_minutes"),
                    t.get("eval_every_frames"), t.get("stop_at_success"), t.get("checkpoint_every_frames"),
-                   t.get("keep_best", False))
+                   t.get("keep_best", False), reselect_settings(cfg)[0])
+
+
+def reselect_settings(cfg: DictConfig) -> tuple[int | None, dict]:
+    """``train.reselect``: (top, the eval overrides of its second validation), or (None, {}) when off."""
+    r = cfg.train.get("reselect")
+    if r is None:
+        return None, {}
+    if not isinstance(r, DictConfig) or "top" not in r or "repeats" not in r:
+        raise ConfigError(f"train.reselect must be null or {{top: N, repeats: R, K: [...] or null}}, got {r!r}")
+    unknown = set(r) - {"top", "repeats", "K"}
+    if unknown:
+        raise ConfigError(f"train.reselect has unknown keys {sorted(unknown)} (top, repeats, K)")
+    check_number(r.repeats, "train.reselect.repeats", low=1, integer=True)
+    K = r.get("K")
+    K = check_numbers(OmegaConf.to_container(K) if isinstance(K, ListConfig) else K, "train.reselect.K",
+                      optional=True, scalar_ok=True)
+    return r.top, {"repeats": int(r.repeats), **({"K": K} if K is not None else {})}
 
 
 def check_collector_config(c: DictConfig) -> None:
@@ -192,29 +213,75 @@ def make_collector(cfg: DictConfig, policy, seed: int, frames_done: int = 0, env
     return cls([env_fn] * int(cfg.collector.num_workers), policy, **common, **no_policy_transforms)
 
 
-def greedy_success(cfg: DictConfig, actor, frames: int, logger) -> tuple[float, float]:
+def greedy_success(cfg: DictConfig, actor, frames: int, logger, seed: int | None = None,
+                   overrides: dict | None = None, name: str = "eval/success_rate") -> tuple[float, float]:
     """Periodic evaluation (validation): the success rate and mean final r of the greedy actor
-    under the stage's protocol with the run's seed (no plots, no files), logged as
-    ``eval/success_rate`` at ``frames``."""
+    under the stage's protocol (``cfg.eval`` with ``overrides``) with the run's seed (or ``seed``;
+    no plots, no files), logged as ``name`` at ``frames``."""
     from laserrl.evaluate import evaluate_policy
 
-    eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), "plots": False, "seed": None}
+    eval_cfg = {**OmegaConf.to_container(cfg.eval, resolve=True), **(overrides or {}), "plots": False, "seed": None}
     result = evaluate_policy(lambda env: actor, OmegaConf.to_container(cfg.env, resolve=True),
-                             OmegaConf.to_container(cfg.stage, resolve=True), eval_cfg, int(cfg.seed))
+                             OmegaConf.to_container(cfg.stage, resolve=True), eval_cfg,
+                             int(cfg.seed if seed is None else seed))
     success, final_r = float(result["success_rate"]), float(result["mean_final_reward"])
     if logger is not None:
-        logger.log_scalar("eval/success_rate", success, step=frames)
-    tqdm.write(f"frames {frames}: eval success rate {success:.2f}, mean final r {final_r:.4f}")
+        logger.log_scalar(name, success, step=frames)
+    tqdm.write(f"frames {frames}: {name} {success:.2f}, mean final r {final_r:.4f}")
     return success, final_r
 
 
-def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success: float, final_r: float) -> None:
+def validation_score(entry: dict) -> tuple[float, float]:
+    """How validations rank weights: success rate, then mean final r."""
+    return entry["success_rate"], entry["mean_final_reward"]
+
+
+def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success: float, final_r: float,
+                 finalists: list | None = None, top: int | None = None) -> None:
     """``train.keep_best``: keep the Q-network's weights if they did better on the validation than
-    the kept ones (higher success rate; at equal success, higher mean final r)."""
-    if run.best is None or (success, final_r) > (run.best["success_rate"], run.best["mean_final_reward"]):
-        run.best = {"frames": run.frames, "success_rate": success, "mean_final_reward": final_r}
+    the kept ones (higher success rate; at equal success, higher mean final r). With
+    ``train.reselect`` (``top``), also keep the ``top`` best-validated weights in ``finalists``
+    (best first) for ``reselect``."""
+    entry = {"frames": run.frames, "success_rate": success, "mean_final_reward": final_r}
+    if top is not None and finalists is not None and (
+            len(finalists) < top or validation_score(entry) > validation_score(finalists[-1])):
+        finalists.append({**entry, "weights": {k: v.detach().clone() for k, v in agent.model_weights().items()}})
+        finalists.sort(key=validation_score, reverse=True)  # stable: at equal scores the earlier weights first
+        del finalists[top:]
+    if run.best is None or validation_score(entry) > validation_score(run.best):
+        run.best = entry
         best_weights.clear()
         best_weights.update({k: v.detach().clone() for k, v in agent.model_weights().items()})
+
+
+def reselect(cfg: DictConfig, agent: DQNAgent, run: RunCounters, best_weights: dict, finalists: list, logger) -> None:
+    """``train.reselect``: the best of a few noisy validations is partly luck (the best of many
+    estimates overstates its weights), so the ``top`` best-validated weights are validated again on
+    a wider draw (``train.reselect.K`` x ``repeats``, noise seed: the run's seed + 2, neither the
+    validation's nor the final evaluation's) and the best there is kept; ``run.best`` records both."""
+    _, overrides = reselect_settings(cfg)
+    greedy = agent.averaged.module if agent.averaged is not None else agent.qnet
+    current = {k: v.detach().clone() for k, v in greedy.state_dict().items()}
+    scores = []
+    try:
+        for f in finalists:
+            greedy.load_state_dict(f["weights"])
+            success, final_r = greedy_success(cfg, agent.greedy, f["frames"], None, seed=int(cfg.seed) + 2,
+                                              overrides=overrides, name="eval/reselect_success_rate")
+            scores.append({"frames": f["frames"], "success_rate": success, "mean_final_reward": final_r,
+                           "validation": validation_score(f)})
+    finally:
+        greedy.load_state_dict(current)  # the training state stays that of the last weights
+    i = max(range(len(scores)), key=lambda j: validation_score(scores[j]))  # ties: the better validated
+    chosen = finalists[i]
+    run.best = {"frames": chosen["frames"], "success_rate": chosen["success_rate"],
+                "mean_final_reward": chosen["mean_final_reward"],
+                "reselect": {"success_rate": scores[i]["success_rate"], "mean_final_reward": scores[i]["mean_final_reward"],
+                             "finalists": scores}}
+    best_weights.clear()
+    best_weights.update(chosen["weights"])
+    if logger is not None:
+        logger.log_scalar("eval/reselect_chosen_frames", float(chosen["frames"]), step=run.frames)
 
 
 def env_snapshot(collector) -> dict | None:
@@ -225,7 +292,8 @@ def env_snapshot(collector) -> dict | None:
 
 
 def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig, logger, started: float,
-             envs=lambda: None, best_weights: dict | None = None, with_replay: bool = True) -> Path:
+             envs=lambda: None, best_weights: dict | None = None, finalists: list | None = None,
+             with_replay: bool = True) -> Path:
     """Checkpoint the run as it stands (with the replay buffer unless ``with_replay`` is false,
     and the collector's episodes in flight, ``envs()``) and rewrite its history.json; returns
     the checkpoint path."""
@@ -236,6 +304,7 @@ def save_run(saver: RunSaver, agent: DQNAgent, run: RunCounters, cfg: DictConfig
         "epsilon": float(agent.egreedy.eps), "frames": run.frames, "updates": run.updates,
         "num_actions": agent.qnet.num_actions, "stage": cfg.stage.name,
         "config": config, **({"best_qnet": best_weights} if best_weights else {}),
+        **({"finalists": finalists} if finalists else {}),
         **({"averaged_qnet": agent.model_weights()} if agent.averaged is not None else {}),
         "resume": {"agent": agent.learning_state(), "counters": dataclasses.asdict(run), "rng": rng_state(),
                    "logger": logger.state_dict() if logger is not None else None, "envs": envs()},
@@ -361,8 +430,12 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
     collector, envs_at_shutdown = None, None
     # train.keep_best: the weights that did best on the periodic validation (saved with the run)
     best_weights = dict(resume["best_qnet"]) if resume is not None and "best_qnet" in resume else {}
+    # train.reselect: the best few validated weights, validated again at the end
+    finalists = list(resume.get("finalists", [])) if resume is not None else []
+    keep = partial(keep_if_best, run, agent, best_weights, finalists=finalists, top=loop.reselect_top)
     save = partial(save_run, saver, agent, run, cfg, logger, started,
-                   lambda: env_snapshot(collector) if collector is not None else envs_at_shutdown, best_weights)
+                   lambda: env_snapshot(collector) if collector is not None else envs_at_shutdown, best_weights,
+                   finalists)
 
     # --- budgets: frames decide; train.max_minutes is a safety net
     eval_every, every, target_rate = loop.eval_every_frames, loop.checkpoint_every_frames, loop.stop_at_success
@@ -373,7 +446,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         # train.keep_best its weights are a candidate, so that fine-tuning cannot end worse than it began
         success, final_r = greedy_success(cfg, agent.greedy, 0, logger)
         if loop.keep_best:
-            keep_if_best(run, agent, best_weights, success, final_r)
+            keep(success, final_r)
         run.history.append({"frames": 0, "updates": 0, "time_s": time.perf_counter() - started, "eval/success_rate": success})
         if target_rate is not None and success >= target_rate:
             run.frames_to_success = 0
@@ -416,7 +489,7 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
                     success, final_r = greedy_success(cfg, agent.greedy, run.frames, logger)
                     record["eval/success_rate"] = success
                     if loop.keep_best:
-                        keep_if_best(run, agent, best_weights, success, final_r)
+                        keep(success, final_r)
                     run.next_eval += eval_every
                     if target_rate is not None and success >= target_rate:
                         run.frames_to_success = run.frames
@@ -445,11 +518,15 @@ def train(cfg: DictConfig, resume: dict | None = None) -> dict:
         save()
         raise RunInterrupted(stop.signum, run.frames, str(run_dir))
     if loop.keep_best and not (run.history and run.history[-1].get("eval/success_rate") is not None):
-        keep_if_best(run, agent, best_weights, *greedy_success(cfg, agent.greedy, run.frames, logger))  # the last weights
+        keep(*greedy_success(cfg, agent.greedy, run.frames, logger))  # the last weights
+    if loop.reselect_top is not None and finalists and "reselect" not in (run.best or {}):
+        reselect(cfg, agent, run, best_weights, finalists, logger)
     ckpt_path = save(with_replay=cfg.train.get("keep_replay", True))
     if run.best is not None:
         print(f"the model keeps the weights of frame {run.best['frames']} (validation success "
-              f"{run.best['success_rate']:.2f}, mean final r {run.best['mean_final_reward']:.4f})")
+              f"{run.best['success_rate']:.2f}, mean final r {run.best['mean_final_reward']:.4f}"
+              + (f"; validated again: {run.best['reselect']['success_rate']:.2f}" if "reselect" in run.best else "")
+              + ")")
     summary = finish(cfg, run, ckpt_path, logger, started)
     print(f"checkpoint: {ckpt_path}")
     return summary

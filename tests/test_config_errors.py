@@ -80,6 +80,12 @@ def _compose(overrides):
     # a recurrent agent's memory
     ("env.gru_size=0", "env.gru_size"), ("env.gru_size=2.5", "env.gru_size"), ("env.gru_size=true", "env.gru_size"),
     ("env.gru_size=32", "env.gru_size"),  # with the fields observation
+    # a second validation of the best weights
+    ("train.reselect={top:3,repeats:2}", "train.reselect"),  # without train.keep_best
+    ("train.reselect={top:1,repeats:2}", "train.reselect.top"), ("train.reselect={top:3}", "train.reselect"),
+    ("train.reselect={top:3,repeats:0}", "train.reselect.repeats"),
+    ("train.reselect={top:3,repeats:2,K:[0.1,nan]}", "train.reselect.K"),
+    ("train.reselect={top:3,repeats:2,seed:4}", "train.reselect"),
 ])
 def test_hostile_value_names_its_key(override, key):
     cfg = _compose([override])

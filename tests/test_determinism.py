@@ -32,3 +32,14 @@ def test_same_seed_same_run_other_seed_other_run(tmp_path):
     assert h1 == h2  # rewards, losses, epsilon: every logged number
     assert all(torch.equal(w1[k], w2[k]) for k in w1)
     assert h1 != h3 and not all(torch.equal(w1[k], w3[k]) for k in w1)
+
+
+def test_validations_and_reselection_do_not_change_what_is_learned(tmp_path):
+    # train.keep_best / train.reselect evaluate on generators of their own: the same seed learns the same weights
+    runs = [_start(tmp_path, "plain", "seed=5"),
+            _start(tmp_path, "validated", "seed=5", "train.keep_best=true", "train.eval_every_frames=32",
+                   "train.reselect={top:2,repeats:1}")]
+    (h1, w1), (h2, w2) = (_result(*run) for run in runs)
+    assert any("eval/success_rate" in h for h in h2)
+    assert h1 == [{k: v for k, v in h.items() if not k.startswith("eval/")} for h in h2]
+    assert all(torch.equal(w1[k], w2[k]) for k in w1)

@@ -140,16 +140,32 @@ def test_warm_start_same_stage_grown_stage_and_refusal(trained, tmp_path):
     assert not (tmp_path / "bad" / "checkpoints").exists()
 
 
-def test_warm_started_keep_best_run_validates_its_starting_weights(trained, tmp_path):
-    # fine-tuning with train.keep_best: the warm start is a candidate, so the run cannot end worse than it began
+def test_warm_started_keep_best_run_validates_its_starting_weights_and_reselects(trained, tmp_path):
+    # fine-tuning with train.keep_best: the warm start is a candidate, so the run cannot end worse than it began;
+    # train.reselect: the 2 best of its 3 validations are validated again on other draws, the winner there kept
     out, _ = trained
-    res = run("laserrl-train", *SMOKE, f"init_from={out}", "train.keep_best=true", "train.eval_every_frames=10000",
-              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+    res = run("laserrl-train", *SMOKE, f"init_from={out}", "train.keep_best=true", "train.eval_every_frames=32",
+              "train.reselect={top:2,repeats:2,K:[0.0,0.2]}", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
-    history = json.loads((tmp_path / "history.json").read_text())
-    assert history[0]["frames"] == 0 and "eval/success_rate" in history[0]
+    validated = [h for h in json.loads((tmp_path / "history.json").read_text()) if "eval/success_rate" in h]
+    assert [h["frames"] for h in validated] == [0, 32, 64]
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["best"]["frames"] in (0, 64) and summary["frames_to_success"] is None
+    best = summary["best"]
+    assert summary["frames_to_success"] is None
+    finalists = best["reselect"]["finalists"]
+    assert len(finalists) == 2 and len({f["frames"] for f in finalists}) == 2
+    top_two = sorted((h["eval/success_rate"] for h in validated), reverse=True)[:2]
+    assert [f["validation"][0] for f in finalists] == top_two  # best-validated first
+    chosen = max(finalists, key=lambda f: (f["success_rate"], f["mean_final_reward"]))
+    assert best["frames"] == chosen["frames"] and best["reselect"]["success_rate"] == chosen["success_rate"]
+    # the model holds the chosen weights; the checkpoint keeps the finalists for a resumed run
+    from laserrl.model import load_model
+    from laserrl.resume import load_run
+
+    saved = {f["frames"]: f["weights"] for f in load_run(tmp_path)["finalists"]}
+    assert set(saved) == {f["frames"] for f in finalists}
+    qnet = load_model(tmp_path)["qnet"]
+    assert all(torch.equal(qnet[k], v) for k, v in saved[chosen["frames"]].items())
 
 
 def test_curriculum_runs_stages_in_order_with_warm_starts(tmp_path):
