@@ -18,12 +18,13 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tensordict import TensorDict
 
+from laserrl.agents.bank import nearest_model
 from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
@@ -265,17 +266,6 @@ def _stage_K(state: Mapping[str, Any]) -> float | tuple[float, float]:
     if isinstance(K, (list, tuple)) and len(K) == 2 and all(isinstance(k, (int, float)) for k in K):
         return (float(min(K)), float(max(K)))
     raise CheckpointError(f"checkpoint {state.get('path')} has stage.K = {K!r}; a bank needs a number or a [lo, hi] range")
-
-
-def nearest_model(model_K: Sequence[float | tuple[float, float]], K: float) -> int:
-    """Index of the bank model for K: the first model fine-tuned over a K range that holds K;
-    otherwise the model whose K (or the centre of whose range) is nearest, ties going to
-    the first model in the bank."""
-    for j, m in enumerate(model_K):
-        if not isinstance(m, (int, float)) and m[0] <= K <= m[1]:
-            return j
-    centres = [m if isinstance(m, (int, float)) else 0.5 * (m[0] + m[1]) for m in model_K]
-    return min(range(len(model_K)), key=lambda j: abs(centres[j] - K))
 
 
 def _summary(result: dict) -> dict:

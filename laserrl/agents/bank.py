@@ -7,9 +7,11 @@ model's greedy action. ``TrialBank`` tries the models in turn on the running las
 it keeps a model while the measured reward r rises or holds the lock, and moves on to the
 next one when r has not risen over a trial of a few steps (models that read the instruments,
 ``env.observation=measured``, are judged by the readings' reward ``r_measured``, whose scale
-is its own: set ``TrialRule.lock_r`` in it). Neither is told K. The oracle
-rule that knows K (nearest training K) is an evaluation-side grouping, see
-``laserrl.evaluate.evaluate_bank``.
+is its own: set ``TrialRule.lock_r`` in it). Neither is told K. The oracle rule that knows
+K, ``NearestKBank``, acts with the model trained nearest each cavity's K at every step; it
+reads K itself, which only a caller that knows it provides (``laserrl-control`` gives the
+simulated K; at fixed K ``laserrl.evaluate.evaluate_bank`` groups the K values by model
+instead).
 
 A bank member can itself be an ensemble, ``MeanQ``: several Q-networks trained for the same
 task (for example the seeds of one fine-tuning recipe) whose Q-values are averaged. Where the
@@ -20,6 +22,7 @@ reliably than any one of them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
@@ -28,7 +31,8 @@ from torchrl.modules import QValueModule
 
 from laserrl.agents.qnet import FieldQNet, MeasuredQNet, is_recurrent
 
-__all__ = ["MaxQBank", "MeanQ", "TrialBank", "TrialRule", "make_bank_actor", "make_trial_actor"]
+__all__ = ["MaxQBank", "MeanQ", "NearestKBank", "TrialBank", "TrialRule", "make_bank_actor", "make_nearest_actor",
+           "make_trial_actor", "nearest_model"]
 
 #: a Q-network: one model's, or an ensemble's mean (``MeanQ``)
 QNet = "FieldQNet | MeasuredQNet | MeanQ"
@@ -157,5 +161,44 @@ def make_trial_actor(qnets: list[QNet], action_spec, rule: TrialRule = TrialRule
     keys = _in_keys(qnets)
     reward = "r" if "fields" in keys else "r_measured"
     bank = TensorDictModule(TrialBank(qnets, rule), in_keys=[*keys, reward, "step_count"],
+                            out_keys=["action_value", "model"])
+    return TensorDictSequential(bank, QValueModule(spec=action_spec))
+
+
+def nearest_model(model_K: Sequence[float | tuple[float, float]], K: float) -> int:
+    """Index of the bank model for K: the first model fine-tuned over a K range that holds K;
+    otherwise the model whose K (or the centre of whose range) is nearest, ties going to
+    the first model in the bank."""
+    for j, m in enumerate(model_K):
+        if not isinstance(m, (int, float)) and m[0] <= K <= m[1]:
+            return j
+    centres = [m if isinstance(m, (int, float)) else 0.5 * (m[0] + m[1]) for m in model_K]
+    return min(range(len(model_K)), key=lambda j: abs(centres[j] - K))
+
+
+class NearestKBank(nn.Module):
+    """Per cavity, the Q-values of the model trained nearest the cavity's K now (``nearest_model``:
+    the oracle rule, told K); and that model's index. ``model_K``: each model's training K (a
+    value, or a (low, high) range)."""
+
+    def __init__(self, qnets: list[QNet], model_K: Sequence[float | tuple[float, float]]):
+        super().__init__()
+        _common_action_count(qnets, "a model bank", "a bank")
+        if len(model_K) != len(qnets):
+            raise ValueError(f"a bank of {len(qnets)} models needs {len(qnets)} training K values, got {list(model_K)}")
+        self.qnets = nn.ModuleList(qnets)
+        self.model_K = [k if isinstance(k, (int, float)) else (float(k[0]), float(k[1])) for k in model_K]
+
+    def forward(self, *obs_K: torch.Tensor):
+        *obs, K = obs_K
+        model = torch.tensor([nearest_model(self.model_K, float(k)) for k in K.reshape(-1)], dtype=torch.int64,
+                             device=K.device).reshape(K.shape[:-1])
+        return _q_of(torch.stack([net(*obs) for net in self.qnets]), model), model
+
+
+def make_nearest_actor(qnets: list[QNet], model_K, action_spec) -> TensorDictSequential:
+    """Greedy policy of a ``NearestKBank``: reads the observation and ``K``; writes ``action``,
+    ``action_value`` and ``model``."""
+    bank = TensorDictModule(NearestKBank(qnets, model_K), in_keys=[*_in_keys(qnets), "K"],
                             out_keys=["action_value", "model"])
     return TensorDictSequential(bank, QValueModule(spec=action_spec))

@@ -105,7 +105,9 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
     for t in range(T):
         plant.set_K(Kt[:, t])
         angles_now = plant.angles_deg
-        command = torch.cat([c.act(obs[part[name]], angles_now[part[name]]) for name, c in controllers.items()])
+        # the simulated K beside the observation, for the one controller that is told K (bank_rule=nearest)
+        seen = obs.clone(recurse=False).set("K", Kt[:, t, None].to(torch.float32))
+        command = torch.cat([c.act(seen[part[name]], angles_now[part[name]]) for name, c in controllers.items()])
         for name in mode:
             mode[name][:, t] = controllers[name].mode.cpu().numpy()
         obs = plant.step(command)
@@ -177,10 +179,16 @@ def run_control(cfg: DictConfig) -> dict:
     state, policy_for, steps_deg = None, None, None
     env_cfg = dict(container["env"])
     controlled = container["controlled"]
-    if cfg.checkpoint:
+    if cfg.checkpoint and cfg.get("bank"):
+        raise ConfigError("give checkpoint=MODEL (one model) or bank=[MODEL, ...] (a bank), not both")
+    if cfg.get("bank"):
+        state, policy_for = bank_policy(container)
+    elif cfg.checkpoint:
         from laserrl.evaluate import load_agent
 
         state = load_model(cfg.checkpoint)
+        policy_for = lambda plant: load_agent(state, plant.env.action_spec_unbatched)  # noqa: E731
+    if state is not None:
         stage = state["config"]["stage"]
         env_cfg = dict(state["config"]["env"])  # the per-step physics the DQN was trained with
         rl_controlled = list(stage["controlled"])
@@ -189,10 +197,9 @@ def run_control(cfg: DictConfig) -> dict:
                               f"{rl_controlled}; leave controlled unset to use those")
         controlled = controlled or rl_controlled
         steps_deg = list(stage["steps_deg"])
-        policy_for = lambda plant: load_agent(state, plant.env.action_spec_unbatched)  # noqa: E731
     elif any(n in NEEDS_CHECKPOINT for n in names):
         raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=MODEL "
-                          "(zoo:NAME or a laserrl-train run directory)")
+                          "(zoo:NAME or a laserrl-train run directory) or bank=[MODEL, ...]")
     controlled = list(controlled or ["alpha1"])
     if cfg.compile is not None:
         env_cfg["compile"] = bool(cfg.compile)
@@ -202,8 +209,10 @@ def run_control(cfg: DictConfig) -> dict:
     # every controller on its own copy of the B cavities, all in one plant
     plant = CavityPlant(env_cfg, controlled, B * len(names), scenario.steps, seed=seed,
                         init_fields=scenario.init_fields, device=cfg.device, plates=plates)
-    policy = policy_for(plant) if policy_for else None
-    controllers = {n: build_controller(n, configs[n], controlled, B, seed, policy, steps_deg, where[n]) for n in names}
+    # a policy of its own for each controller: a bank's trial rule keeps per-cavity state
+    controllers = {n: build_controller(n, configs[n], controlled, B, seed,
+                                       policy_for(plant) if policy_for and n in NEEDS_CHECKPOINT else None,
+                                       steps_deg, where[n]) for n in names}
 
     t0 = time.perf_counter()
     traces_np = run_controllers(controllers, plant, K, init_angles, progress=bool(cfg.progress))
@@ -223,7 +232,8 @@ def run_control(cfg: DictConfig) -> dict:
     out = {
         "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
         "num_cavities": B, "seed": seed, "controlled": controlled, "locked_r": float(cfg.locked_r),
-        "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state else None,
+        "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state and not cfg.get("bank") else None,
+        **({"bank": state["bank"], "bank_rule": cfg.bank_rule} if cfg.get("bank") else {}),
         "plates": {"noise_deg": plates.noise_deg, "backlash_deg": plates.backlash_deg},
         "env": {k: env_cfg[k] for k in ("max_round_trips", "tol", "dtype") if k in env_cfg} | {"physics": env_cfg.get("physics")},
         "seconds": round(seconds, 1), "results": results, "K": _rounded(K), "init_angles_deg": _rounded(init_angles, 3), "traces": traces,
@@ -242,6 +252,37 @@ def run_control(cfg: DictConfig) -> dict:
     print(f"{B} cavities x {len(names)} controller(s) x {scenario.steps} steps in {seconds:.0f} s")
     print(f"control: {path}")
     return out
+
+
+def bank_policy(container: Mapping[str, Any]):
+    """``bank=[MODEL, ...]``: (the first member's model, whose env and stage set the physics and the
+    actions, with ``bank`` the members' paths; a factory of the bank's greedy policy for a plant).
+    ``bank_rule``: ``trial`` (K unknown, ``TrialBank`` with ``bank_trial``) or ``nearest`` (told K)."""
+    from laserrl.agents.bank import TrialRule, make_nearest_actor, make_trial_actor
+    from laserrl.evaluate import _load_member, _member_qnet, _stage_K
+
+    rule = container.get("bank_rule")
+    if rule not in ("trial", "nearest"):
+        raise ConfigError(f"bank_rule must be trial (K unknown) or nearest (told K), got {rule!r}")
+    if not isinstance(container["bank"], list):
+        raise ConfigError(f"bank must be a list of models, got {container['bank']!r}")
+    try:
+        trial = TrialRule(**dict(container.get("bank_trial") or {}))
+    except TypeError as err:
+        raise ConfigError(f"bank_trial: {err}; its keys are steps, min_rise, lock_r") from None
+    members = [_load_member(entry, i) for i, entry in enumerate(container["bank"])]
+    stages = {(m[0]["config"]["stage"]["name"], tuple(m[0]["config"]["stage"]["controlled"])) for m in members}
+    if len(stages) != 1:
+        raise ConfigError(f"bank: the models are trained for different tasks {sorted(stages)}; give models of one task")
+    model_K = [_stage_K(m[0]) for m in members]
+
+    def policy_for(plant):
+        spec = plant.env.action_spec_unbatched
+        qnets = [_member_qnet(m, spec) for m in members]
+        return make_trial_actor(qnets, spec, trial) if rule == "trial" else make_nearest_actor(qnets, model_K, spec)
+
+    first = members[0][0]
+    return {**first, "bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members]}, policy_for
 
 
 def _fmt(s: dict, digits: int = 3, pct: bool = False) -> str:

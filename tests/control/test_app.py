@@ -156,6 +156,51 @@ def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
     assert all(0.0 <= out["results"][n]["summary"]["frac_locked"]["mean"] <= 1.0 for n in ALL)
 
 
+def _always(checkpoint, out, K, sign):
+    """A copy of ``checkpoint`` (siso) labelled as trained at ``K`` whose greedy action always moves
+    alpha1 by ``sign`` steps."""
+    import copy
+
+    import torch
+
+    from laserrl.model import load_model, save_model
+
+    state = load_model(checkpoint)
+    meta = copy.deepcopy(state["meta"])
+    meta["K"] = meta["config"]["stage"]["K"] = K
+    weights = dict(state["qnet"])
+    weights["head.4.weight"] = torch.zeros_like(weights["head.4.weight"])
+    weights["head.4.bias"] = torch.tensor([10.0, 0.0, 0.0]) if sign < 0 else torch.tensor([0.0, 0.0, 10.0])
+    save_model(out, weights, meta)
+    return out
+
+
+@pytest.mark.parametrize("rule", ["nearest", "trial"])
+def test_a_bank_acts_with_the_member_its_rule_picks(checkpoint, tmp_path, rule):
+    # two members that always step down (trained "at K = 0") and up (at K = 0.4); K jumps from 0.05 to >= 0.3
+    down, up = _always(checkpoint, tmp_path / "down", 0.0, -1), _always(checkpoint, tmp_path / "up", 0.4, +1)
+    bank = f"bank=[{down},{up}]" if rule == "nearest" else f"bank=[{up},{down}]"
+    out = _run(["controller=rl", bank, f"bank_rule={rule}", "scenario.steps=6", "scenario.K0=0.05",
+                "scenario.jumps.times=[3]", "scenario.jumps.range=[0.3,0.4]",
+                "bank_trial.steps=2", "bank_trial.lock_r=10", "bank_trial.min_rise=10", "progress=false"], tmp_path)
+    assert out["bank"] == ([str(down), str(up)] if rule == "nearest" else [str(up), str(down)])
+    for b in range(2):
+        a = [out["init_angles_deg"][b][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][b]]
+        moves = [round((a[t + 1] - a[t]) / 2.0) for t in range(6)]
+        if rule == "nearest":  # told K: down before the jump, up after it
+            assert moves == [-1 if k < 0.2 else 1 for k in out["K"][b]], (moves, out["K"][b])
+        else:  # not told K: r never rises by 10, so each member gets 2 steps in turn, from the first
+            assert moves == [1, 1, -1, -1, 1, 1], moves
+
+
+def test_a_bank_refuses_a_checkpoint_beside_it_and_unknown_rules(checkpoint, tmp_path):
+    with pytest.raises(ConfigError, match="not both"):
+        _run(["controller=rl", f"checkpoint={checkpoint}", f"bank=[{checkpoint}]"], tmp_path)
+    with pytest.raises(ConfigError, match="bank_rule"):
+        _run(["controller=rl", f"bank=[{checkpoint}]", "bank_rule=max_q"], tmp_path)
+    assert not (tmp_path / "control.json").exists()
+
+
 def test_all_runs_only_the_controllers_named(tmp_path):
     out = _run(["controller=all", "controller.only=[ga,esc]", "metric_controller=esc"], tmp_path)
     assert out["controllers"] == ["ga", "esc"] and set(out["results"]) == {"ga", "esc"}
