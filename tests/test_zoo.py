@@ -50,14 +50,17 @@ def _replica(name: str) -> bool:
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if _replica(n) else n for n in NAMES])
 def test_every_zoo_model_reproduces_its_recorded_success(name, tmp_path):
     """The card's evaluation, rerun: the same rollouts (the recorded seed and starts) succeed. A
-    different CPU may round differently; one rollout may flip."""
+    different CPU may round differently: one rollout may flip, two of the four-controller task's
+    (100 steps of four plates, where rounding has longer to grow; two flipped for two such models
+    on one AMD EPYC machine)."""
     recorded = json.loads((zoo.zoo_path(name) / "eval.json").read_text())
     assert recorded["success_rate"] == load_model(f"zoo:{name}")["meta"]["eval"]["success_rate"]
     result = evaluate_checkpoint(f"zoo:{name}", _short_protocol(name, recorded), tmp_path)
     n = len(recorded["per_start"])
     assert len(result["per_start"]) == n
     # success rates are stored as float32 (0.7 - 0.8 = -0.10000002): one rollout is 1 / n up to that rounding
-    assert abs(result["success_rate"] - recorded["success_rate"]) <= 1.0 / n + 1e-6, (result["success_rate"], recorded)
+    flips = 2 if recorded["stage"] == "miso" else 1
+    assert abs(result["success_rate"] - recorded["success_rate"]) <= flips / n + 1e-6, (result["success_rate"], recorded)
 
 
 def test_the_zoo_command_lists_and_describes(tmp_path):
