@@ -305,6 +305,25 @@ def _load_member(entry, index: int) -> list[dict]:
     return states
 
 
+def load_bank(bank: list, trial: Mapping[str, Any] | None):
+    """A bank's members (each a list of models: one, or an ensemble's), their training K
+    (``_stage_K``) and the trial rule of ``bank_trial`` (``TrialRule``); errors name
+    ``bank[i]`` or ``bank_trial``."""
+    from laserrl.agents.bank import TrialRule
+
+    try:
+        rule = TrialRule(**dict(trial or {}))
+    except TypeError as err:
+        raise ConfigError(f"bank_trial: {err}; its keys are steps, min_rise, lock_r") from None
+    members = [_load_member(entry, i) for i, entry in enumerate(bank)]
+    return members, [_stage_K(m[0]) for m in members], rule
+
+
+def bank_paths(members: list[list[dict]]) -> list:
+    """The members' paths as given: a path, or a list of an ensemble's paths."""
+    return [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members]
+
+
 def _member_qnet(states: list[dict], action_spec):
     """The Q-network of a bank member: the model itself, or the mean of an ensemble's."""
     from laserrl.agents.bank import MeanQ
@@ -326,15 +345,9 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     ``single`` at every K. Writes eval.json with the success rate per K of each rule and
     ``generalisation.png``.
     """
-    from laserrl.agents.bank import TrialRule, make_bank_actor, make_trial_actor
+    from laserrl.agents.bank import make_bank_actor, make_trial_actor
 
-    try:
-        rule = TrialRule(**dict(trial or {}))
-    except TypeError as err:
-        raise ConfigError(f"bank_trial: {err}; its keys are steps, min_rise, lock_r") from None
-
-    members = [_load_member(entry, i) for i, entry in enumerate(bank)]
-    model_K = [_stage_K(m[0]) for m in members]
+    members, model_K, rule = load_bank(bank, trial)
     cfg = members[0][0]["config"]
     stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
     check_eval_config(eval_cfg)  # before eval.seed is read
@@ -367,7 +380,7 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
         state = load_model(single)
         rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
-    result = {"bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members],
+    result = {"bank": bank_paths(members),
               "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,
               "stage": stage_cfg.get("name"), "seed": seed,
               "trial_rule": dataclasses.asdict(rule), "rules": rules,

@@ -243,15 +243,20 @@ def keep_if_best(run: RunCounters, agent: DQNAgent, best_weights: dict, success:
     ``train.reselect`` (``top``), also keep the ``top`` best-validated weights in ``finalists``
     (best first) for ``reselect``."""
     entry = {"frames": run.frames, "success_rate": success, "mean_final_reward": final_r}
-    if top is not None and finalists is not None and (
-            len(finalists) < top or validation_score(entry) > validation_score(finalists[-1])):
-        finalists.append({**entry, "weights": {k: v.detach().clone() for k, v in agent.model_weights().items()}})
+    finalist = top is not None and finalists is not None and (
+        len(finalists) < top or validation_score(entry) > validation_score(finalists[-1]))
+    best = run.best is None or validation_score(entry) > validation_score(run.best)
+    if not (finalist or best):
+        return
+    weights = {k: v.detach().clone() for k, v in agent.model_weights().items()}  # one copy for both
+    if finalist:
+        finalists.append({**entry, "weights": weights})
         finalists.sort(key=validation_score, reverse=True)  # stable: at equal scores the earlier weights first
         del finalists[top:]
-    if run.best is None or validation_score(entry) > validation_score(run.best):
+    if best:
         run.best = entry
         best_weights.clear()
-        best_weights.update({k: v.detach().clone() for k, v in agent.model_weights().items()})
+        best_weights.update(weights)
 
 
 def reselect(cfg: DictConfig, agent: DQNAgent, run: RunCounters, best_weights: dict, finalists: list, logger) -> None:
@@ -260,7 +265,7 @@ def reselect(cfg: DictConfig, agent: DQNAgent, run: RunCounters, best_weights: d
     a wider draw (``train.reselect.K`` x ``repeats``, noise seed: the run's seed + 2, neither the
     validation's nor the final evaluation's) and the best there is kept; ``run.best`` records both."""
     _, overrides = reselect_settings(cfg)
-    greedy = agent.averaged.module if agent.averaged is not None else agent.qnet
+    greedy = agent.greedy_qnet
     current = {k: v.detach().clone() for k, v in greedy.state_dict().items()}
     scores = []
     try:

@@ -240,9 +240,14 @@ class DQNAgent:
             self.averaged.module.load_state_dict(self.qnet.state_dict())
             self.averaged.n_averaged.zero_()
 
+    @property
+    def greedy_qnet(self) -> torch.nn.Module:
+        """The network the greedy actor acts with (evaluated and saved): the average, or the Q-network."""
+        return self.averaged.module if self.averaged is not None else self.qnet
+
     def model_weights(self) -> dict:
         """The weights of the greedy actor that is evaluated and saved: the average, or the Q-network's."""
-        return (self.averaged.module if self.averaged is not None else self.qnet).state_dict()
+        return self.greedy_qnet.state_dict()
 
     def explore(self, frames: int) -> float:
         """Set epsilon for ``frames`` collected so far; returns it."""

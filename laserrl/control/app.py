@@ -258,23 +258,18 @@ def bank_policy(container: Mapping[str, Any]):
     """``bank=[MODEL, ...]``: (the first member's model, whose env and stage set the physics and the
     actions, with ``bank`` the members' paths; a factory of the bank's greedy policy for a plant).
     ``bank_rule``: ``trial`` (K unknown, ``TrialBank`` with ``bank_trial``) or ``nearest`` (told K)."""
-    from laserrl.agents.bank import TrialRule, make_nearest_actor, make_trial_actor
-    from laserrl.evaluate import _load_member, _member_qnet, _stage_K
+    from laserrl.agents.bank import make_nearest_actor, make_trial_actor
+    from laserrl.evaluate import _member_qnet, bank_paths, load_bank
 
     rule = container.get("bank_rule")
     if rule not in ("trial", "nearest"):
         raise ConfigError(f"bank_rule must be trial (K unknown) or nearest (told K), got {rule!r}")
     if not isinstance(container["bank"], list):
         raise ConfigError(f"bank must be a list of models, got {container['bank']!r}")
-    try:
-        trial = TrialRule(**dict(container.get("bank_trial") or {}))
-    except TypeError as err:
-        raise ConfigError(f"bank_trial: {err}; its keys are steps, min_rise, lock_r") from None
-    members = [_load_member(entry, i) for i, entry in enumerate(container["bank"])]
+    members, model_K, trial = load_bank(container["bank"], container.get("bank_trial"))
     stages = {(m[0]["config"]["stage"]["name"], tuple(m[0]["config"]["stage"]["controlled"])) for m in members}
     if len(stages) != 1:
         raise ConfigError(f"bank: the models are trained for different tasks {sorted(stages)}; give models of one task")
-    model_K = [_stage_K(m[0]) for m in members]
 
     def policy_for(plant):
         spec = plant.env.action_spec_unbatched
@@ -282,7 +277,7 @@ def bank_policy(container: Mapping[str, Any]):
         return make_trial_actor(qnets, spec, trial) if rule == "trial" else make_nearest_actor(qnets, model_K, spec)
 
     first = members[0][0]
-    return {**first, "bank": [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members]}, policy_for
+    return {**first, "bank": bank_paths(members)}, policy_for
 
 
 def _fmt(s: dict, digits: int = 3, pct: bool = False) -> str:
