@@ -1,5 +1,8 @@
 """Figures next to a run: training curves (paper fig. 2) and per-start reward
-trajectories with angle paths (paper fig. 3)."""
+trajectories with angle paths (paper fig. 3); and success per K of several evaluations side by side:
+
+    python -m laserrl.plots over-k OUT.png --panel "fields" --curve "one model=RUN/eval.json#single" ...
+"""
 from __future__ import annotations
 
 from pathlib import Path
@@ -117,3 +120,110 @@ def plot_control(out: dict, path: str | Path, cavity: int = 0, dpi: int = 110) -
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return Path(path)
+
+
+# ------------------------------------------------------------------- several evaluations over K
+def read_curve(spec: str) -> tuple[str, dict]:
+    """``LABEL=PATH`` or ``LABEL=PATH#RULE``: the success per K of a ``laserrl-eval`` result over K
+    (the label is everything before the last ``=``).
+
+    PATH is an eval.json (or the directory holding it) of one model evaluated over K values,
+    or of a bank (``bank=[...]``), whose rules (single, nearest, max_q, trial) RULE picks.
+    """
+    import json
+
+    from laserrl.config import ConfigError
+
+    label, sep, where = spec.rpartition("=")  # the label may hold "=" (K = 0.1), the path not
+    if not sep or not label.strip() or not where:
+        raise ConfigError(f"--curve {spec!r}: give LABEL=PATH or LABEL=PATH#RULE")
+    path_text, _, rule = where.partition("#")
+    path = Path(path_text)
+    if path.is_dir():
+        path = path / "eval.json"
+    if not path.is_file():
+        raise ConfigError(f"--curve {label}: no such file {path}")
+    try:
+        result = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ConfigError(f"--curve {label}: {path} is not valid JSON ({err})") from None
+    if isinstance(result, dict) and isinstance(result.get("rules"), dict):
+        rules = result["rules"]
+    elif isinstance(result, dict) and "by_K" in result:
+        rules = {"single": result}
+    else:
+        raise ConfigError(f"--curve {label}: {path} is not an evaluation over K: it has neither rules (a bank "
+                          "evaluation) nor by_K")
+    if not rule:
+        if len(rules) != 1:
+            raise ConfigError(f"--curve {label}: {path} is a bank evaluation; name its rule, PATH#RULE, one of {sorted(rules)}")
+        rule = next(iter(rules))
+    if rule not in rules:
+        raise ConfigError(f"--curve {label}: {path} has no rule {rule!r}; its rules: {sorted(rules)}")
+    by_K = rules[rule]["by_K"]
+    try:
+        points = sorted((float(K), float(v["success_rate"])) for K, v in by_K.items())
+    except (TypeError, ValueError, KeyError) as err:
+        raise ConfigError(f"--curve {label}: {path}#{rule}: not a success rate per K ({err})") from None
+    return label.strip(), {"K": [k for k, _ in points], "success_rate": [s for _, s in points], "source": f"{path}#{rule}"}
+
+
+def plot_over_k(panels: list[tuple[str, list[tuple[str, dict]]]], path: str | Path, bar: float | None = 0.9) -> Path:
+    """Success rate against K, one panel per (title, curves); ``bar``: a dashed line at that rate."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.2), sharey=True, squeeze=False)
+    for ax, (title, curves) in zip(axes[0], panels):
+        for label, curve in curves:
+            ax.plot(curve["K"], curve["success_rate"], "o-", ms=3.5, lw=1.2, label=label)
+        if bar is not None:
+            ax.axhline(bar, color="k", ls="--", lw=0.7, zorder=0)
+        ax.set(xlabel="birefringence K", title=title, ylim=(-0.05, 1.05))
+        ax.legend(fontsize=7.5, loc="lower right")
+    axes[0, 0].set(ylabel="success rate")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return Path(path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m laserrl.plots over-k OUT.png [--panel TITLE] --curve LABEL=PATH[#RULE] ...``:
+    each ``--curve`` goes to the panel of the last ``--panel`` before it."""
+    import argparse
+    import sys
+
+    from laserrl.config import ConfigError
+
+    parser = argparse.ArgumentParser(prog="python -m laserrl.plots")
+    sub = parser.add_subparsers(dest="command", required=True)
+    over_k = sub.add_parser("over-k", help="success rate per K of several laserrl-eval results, in panels")
+    over_k.add_argument("out", help="the PNG to write")
+    over_k.add_argument("--panel", dest="items", action="append", type=lambda t: ("panel", t), default=[],
+                        help="start a panel with this title; the curves after it go there")
+    over_k.add_argument("--curve", dest="items", action="append", type=lambda t: ("curve", t),
+                        help="LABEL=PATH or LABEL=PATH#RULE (split at the last =): PATH an eval.json (or its directory) over K, RULE a "
+                             "bank evaluation's rule (single, nearest, max_q, trial)")
+    over_k.add_argument("--bar", type=float, default=0.9, help="dashed line at this success rate (default 0.9)")
+    args = parser.parse_args(argv)
+    try:
+        panels: list[tuple[str, list]] = []
+        for kind, text in args.items:
+            if kind == "panel":
+                panels.append((text, []))
+                continue
+            if not panels:
+                panels.append(("", []))
+            panels[-1][1].append(read_curve(text))
+        empty = [title or "(untitled)" for title, curves in panels if not curves]
+        if not panels or empty:
+            raise ConfigError("--curve: every panel needs at least one curve" + (f"; empty: {empty}" if empty else ""))
+        if not args.out.endswith(".png"):
+            raise ConfigError(f"out: {args.out} is not a .png file")
+        print(f"figure: {plot_over_k(panels, args.out, args.bar)}")
+    except (ConfigError, OSError) as err:
+        print(f"{parser.prog}: error: {err}".splitlines()[0], file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
