@@ -169,18 +169,22 @@ def read_curve(spec: str) -> tuple[str, dict]:
 
 
 def plot_over_k(panels: list[tuple[str, list[tuple[str, dict]]]], path: str | Path, bar: float | None = 0.9) -> Path:
-    """Success rate against K, one panel per (title, curves); ``bar``: a dashed line at that rate."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 4.2), sharey=True, squeeze=False)
+    """Success rate against K, one panel per (title, curves); a label has one colour in every
+    panel; ``bar``: a dashed line at that rate."""
+    labels = list(dict.fromkeys(label for _, curves in panels for label, _ in curves))
+    colors = {label: plt.get_cmap("tab10")(i % 10) for i, label in enumerate(labels)}
+    rows = max(len(curves) for _, curves in panels)
+    fig, axes = plt.subplots(1, len(panels), figsize=(6.2 * len(panels), 3.6 + 0.22 * rows), sharey=True, squeeze=False)
     for ax, (title, curves) in zip(axes[0], panels):
         for label, curve in curves:
-            ax.plot(curve["K"], curve["success_rate"], "o-", ms=3.5, lw=1.2, label=label)
+            ax.plot(curve["K"], curve["success_rate"], "o-", ms=3.5, lw=1.2, color=colors[label], label=label)
         if bar is not None:
             ax.axhline(bar, color="k", ls="--", lw=0.7, zorder=0)
         ax.set(xlabel="birefringence K", title=title, ylim=(-0.05, 1.05))
-        ax.legend(fontsize=7.5, loc="lower right")
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.16), frameon=False)
     axes[0, 0].set(ylabel="success rate")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return Path(path)
 
