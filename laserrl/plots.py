@@ -130,9 +130,9 @@ def read_curve(spec: str) -> tuple[str, dict]:
     PATH is an eval.json (or the directory holding it) of one model evaluated over K values,
     or of a bank (``bank=[...]``), whose rules (single, nearest, max_q, trial) RULE picks.
     """
-    import json
-
     from laserrl.config import ConfigError
+    from laserrl.evaluate import as_generalisation
+    from laserrl.report.context import read_json
 
     label, sep, where = spec.rpartition("=")  # the label may hold "=" (K = 0.1), the path not
     if not sep or not label.strip() or not where:
@@ -141,19 +141,11 @@ def read_curve(spec: str) -> tuple[str, dict]:
     path = Path(path_text)
     if path.is_dir():
         path = path / "eval.json"
-    if not path.is_file():
-        raise ConfigError(f"--curve {label}: no such file {path}")
+    result = read_json(path, f"--curve {label}")
     try:
-        result = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"--curve {label}: {path} is not valid JSON ({err})") from None
-    if isinstance(result, dict) and isinstance(result.get("rules"), dict):
-        rules = result["rules"]
-    elif isinstance(result, dict) and "by_K" in result:
-        rules = {"single": result}
-    else:
-        raise ConfigError(f"--curve {label}: {path} is not an evaluation over K: it has neither rules (a bank "
-                          "evaluation) nor by_K")
+        rules = as_generalisation(result)["rules"]  # one model's result becomes the rule "single"
+    except (ConfigError, KeyError, TypeError) as err:
+        raise ConfigError(f"--curve {label}: {path} is not an evaluation over K ({err})") from None
     if not rule:
         if len(rules) != 1:
             raise ConfigError(f"--curve {label}: {path} is a bank evaluation; name its rule, PATH#RULE, one of {sorted(rules)}")
@@ -165,7 +157,7 @@ def read_curve(spec: str) -> tuple[str, dict]:
         points = sorted((float(K), float(v["success_rate"])) for K, v in by_K.items())
     except (TypeError, ValueError, KeyError) as err:
         raise ConfigError(f"--curve {label}: {path}#{rule}: not a success rate per K ({err})") from None
-    return label.strip(), {"K": [k for k, _ in points], "success_rate": [s for _, s in points], "source": f"{path}#{rule}"}
+    return label.strip(), {"K": [k for k, _ in points], "success_rate": [s for _, s in points]}
 
 
 def plot_over_k(panels: list[tuple[str, list[tuple[str, dict]]]], path: str | Path, bar: float | None = 0.9) -> Path:

@@ -16,7 +16,8 @@ def evals(tmp_path):
     one = tmp_path / "agent"
     one.mkdir()
     # one model over K, K not in order as laserrl-eval may list them (grid, then off the grid)
-    (one / "eval.json").write_text(json.dumps({"success_rate": 0.5, "by_K": _by_K({0.0: 1.0, 0.4: 0.2, -0.1: 0.3})}))
+    (one / "eval.json").write_text(json.dumps({"success_rate": 0.5, "mean_final_reward": 0.1, "mean_steps_to_lock": 30.0,
+                                               "by_K": _by_K({0.0: 1.0, 0.4: 0.2, -0.1: 0.3})}))
     bank = tmp_path / "bank.json"
     rules = {name: {"success_rate": 0.5, "mean_final_reward": 0.1, "by_K": _by_K({0.0: s, 0.2: 1.0})}
              for name, s in (("trial", 0.9), ("nearest", 0.7), ("single", 0.4))}
