@@ -30,6 +30,7 @@ from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
+from laserrl.results import as_generalisation, grid_success, summary as _summary
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -266,29 +267,6 @@ def _stage_K(state: Mapping[str, Any]) -> float | tuple[float, float]:
     if isinstance(K, (list, tuple)) and len(K) == 2 and all(isinstance(k, (int, float)) for k in K):
         return (float(min(K)), float(max(K)))
     raise CheckpointError(f"checkpoint {state.get('path')} has stage.K = {K!r}; a bank needs a number or a [lo, hi] range")
-
-
-def _summary(result: dict) -> dict:
-    return {k: result[k] for k in ("success_rate", "mean_final_reward", "mean_steps_to_lock", "by_K")}
-
-
-def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> dict:
-    """A result over a K grid in the shape of ``evaluate_bank``'s: a bank evaluation as it is,
-    and one model's ``evaluate_policy`` result (``laserrl-eval checkpoint=M 'eval.K=[...]'``)
-    as the rule ``single`` of a bank without members."""
-    if "rules" in result:
-        return dict(result)
-    if "by_K" not in result:
-        raise ConfigError("not an evaluation over K: it has neither rules (a bank evaluation) nor by_K")
-    Ks = [float(k) for k in result["by_K"]]
-    rules = {"single": _summary(result)}
-    return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "seed": result.get("seed"),
-            "rules": rules, "grid_success": grid_success(rules, len(Ks))}
-
-
-def grid_success(rules: Mapping[str, dict], num_K: int) -> dict[str, float]:
-    """Per rule, the fraction of the grid's K at which it succeeds on at least 90 % of the starts."""
-    return {name: sum(v["success_rate"] >= 0.9 for v in rule["by_K"].values()) / num_K for name, rule in rules.items()}
 
 
 def _load_member(entry, index: int) -> list[dict]:

@@ -131,8 +131,7 @@ def read_curve(spec: str) -> tuple[str, dict]:
     or of a bank (``bank=[...]``), whose rules (single, nearest, max_q, trial) RULE picks.
     """
     from laserrl.config import ConfigError
-    from laserrl.evaluate import as_generalisation
-    from laserrl.report.context import read_json
+    from laserrl.results import as_generalisation, read_json
 
     label, sep, where = spec.rpartition("=")  # the label may hold "=" (K = 0.1), the path not
     if not sep or not label.strip() or not where:

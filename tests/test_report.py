@@ -194,7 +194,7 @@ def test_without_a_bank_the_rows_about_other_K_say_they_are_not_backed_by_the_zo
 def test_one_model_over_K_backs_the_one_model_row_and_not_the_banks():
     from types import SimpleNamespace
 
-    from laserrl.evaluate import as_generalisation
+    from laserrl.results import as_generalisation
     from laserrl.report.claims import _K_bank, _K_single
     from laserrl.report.context import NOT_IN_ZOO
 

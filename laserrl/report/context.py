@@ -22,7 +22,8 @@ from laserrl.config import ConfigError
 from laserrl.envs.factory import make_params, make_task
 from laserrl.envs.laser_env import ANGLE_NAMES
 from laserrl.paths import CONF_DIR
-from laserrl.evaluate import _stage_base_angles, as_generalisation, evaluate_bank, evaluate_policy, load_agent, write_eval
+from laserrl.results import as_generalisation, read_json
+from laserrl.evaluate import _stage_base_angles, evaluate_bank, evaluate_policy, load_agent, write_eval
 
 #: the angles each model of the report controls (None: any; k_base, the model the claims about
 #: other K start from, is the four-controller model at K = 0.1, or zoo:siso for the single-input variant)
@@ -139,18 +140,6 @@ def load_model(path: str, role: str, command: str | None = None) -> Model:
     card = state["meta"].get("card") or {}
     recorded = card.get("command") and card["command"] + (f"  ({state['path']})" if str(path).startswith("zoo:") else "")
     return Model(role, state["path"], state, command or recorded or producing_command(state["dir"]))
-
-
-def read_json(path: str | Path, key: str) -> Any:
-    path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"{key}: {path} is a directory; give the JSON file")
-    if not path.exists():
-        raise ConfigError(f"{key}: no such file {path}")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ConfigError(f"{key}: {path} is not valid JSON ({err})") from None
 
 
 def frames_to_success(run_dir: Path, target: float) -> int | None:

@@ -249,12 +249,12 @@ def fig7_hybrid(ctx, path: Path) -> None:
         "trained at K = 0.1 and, where a bank is given, its rules (nearest K, which knows K; highest Q and trial, "
         "which do not). Success rate per K of the four-controller protocol.")
 def any_k_comparison(ctx, path: Path) -> None:
-    from laserrl.evaluate import _summary
+    from laserrl.results import summary
 
     if ctx.any_k is None:
         raise FigureSkipped("no K-blind agent: give report.checkpoints.any_k (a model of experiment=miso_any_k)")
     g = ctx.generalisation
-    plot_generalisation({**g, "rules": {**g["rules"], "any_k": _summary(ctx.any_k)}}, path)
+    plot_generalisation({**g, "rules": {**g["rules"], "any_k": summary(ctx.any_k)}}, path)
 
 
 def draw_figures(ctx, out_dir: Path, names: list[str] | None = None) -> dict[str, dict]:
