@@ -302,7 +302,7 @@ def bank_paths(members: list[list[dict]]) -> list:
     return [m[0]["path"] if len(m) == 1 else [st["path"] for st in m] for m in members]
 
 
-def _member_qnet(states: list[dict], action_spec):
+def member_qnet(states: list[dict], action_spec):
     """The Q-network of a bank member: the model itself, or the mean of an ensemble's."""
     from laserrl.agents.bank import MeanQ
 
@@ -336,17 +336,17 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
         raise ConfigError("a bank evaluation needs the K grid: eval.K=[-0.2,-0.15,...,0.4]")
     rules: dict[str, dict] = {}
     rules["max_q"] = _summary(evaluate_policy(
-        lambda env: make_bank_actor([_member_qnet(m, env.action_spec_unbatched) for m in members], env.action_spec_unbatched),
+        lambda env: make_bank_actor([member_qnet(m, env.action_spec_unbatched) for m in members], env.action_spec_unbatched),
         cfg["env"], stage_cfg, eval_cfg, seed))
     rules["trial"] = _summary(evaluate_policy(
-        lambda env: make_trial_actor([_member_qnet(m, env.action_spec_unbatched) for m in members],
+        lambda env: make_trial_actor([member_qnet(m, env.action_spec_unbatched) for m in members],
                                      env.action_spec_unbatched, rule),
         cfg["env"], stage_cfg, eval_cfg, seed))
     nearest_by_K: dict[str, dict] = {}
     for m, member in enumerate(members):
         mine = [K for K in Ks if nearest_model(model_K, K) == m]
         if mine:
-            res = evaluate_policy(lambda env, mm=member: make_actor(_member_qnet(mm, env.action_spec_unbatched),
+            res = evaluate_policy(lambda env, mm=member: make_actor(member_qnet(mm, env.action_spec_unbatched),
                                                                     env.action_spec_unbatched),
                                   cfg["env"], stage_cfg, {**dict(eval_cfg), "K": mine}, seed)
             nearest_by_K.update({k: {**v, "model": m} for k, v in res["by_K"].items()})

@@ -259,7 +259,7 @@ def bank_policy(container: Mapping[str, Any]):
     actions, with ``bank`` the members' paths; a factory of the bank's greedy policy for a plant).
     ``bank_rule``: ``trial`` (K unknown, ``TrialBank`` with ``bank_trial``) or ``nearest`` (told K)."""
     from laserrl.agents.bank import make_nearest_actor, make_trial_actor
-    from laserrl.evaluate import _member_qnet, bank_paths, load_bank
+    from laserrl.evaluate import member_qnet, bank_paths, load_bank
 
     rule = container.get("bank_rule")
     if rule not in ("trial", "nearest"):
@@ -273,7 +273,7 @@ def bank_policy(container: Mapping[str, Any]):
 
     def policy_for(plant):
         spec = plant.env.action_spec_unbatched
-        qnets = [_member_qnet(m, spec) for m in members]
+        qnets = [member_qnet(m, spec) for m in members]
         return make_trial_actor(qnets, spec, trial) if rule == "trial" else make_nearest_actor(qnets, model_K, spec)
 
     first = members[0][0]
