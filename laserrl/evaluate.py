@@ -30,7 +30,7 @@ from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
-from laserrl.results import as_generalisation, grid_success, summary as _summary
+from laserrl.results import grid_success, summary
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -335,10 +335,10 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     if not Ks:
         raise ConfigError("a bank evaluation needs the K grid: eval.K=[-0.2,-0.15,...,0.4]")
     rules: dict[str, dict] = {}
-    rules["max_q"] = _summary(evaluate_policy(
+    rules["max_q"] = summary(evaluate_policy(
         lambda env: make_bank_actor([member_qnet(m, env.action_spec_unbatched) for m in members], env.action_spec_unbatched),
         cfg["env"], stage_cfg, eval_cfg, seed))
-    rules["trial"] = _summary(evaluate_policy(
+    rules["trial"] = summary(evaluate_policy(
         lambda env: make_trial_actor([member_qnet(m, env.action_spec_unbatched) for m in members],
                                      env.action_spec_unbatched, rule),
         cfg["env"], stage_cfg, eval_cfg, seed))
@@ -356,7 +356,7 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
                         "by_K": nearest_by_K}
     if single:
         state = load_model(single)
-        rules["single"] = _summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
+        rules["single"] = summary(evaluate_policy(lambda env: load_agent(state, env.action_spec_unbatched),
                                                    cfg["env"], stage_cfg, eval_cfg, seed))
     result = {"bank": bank_paths(members),
               "bank_K": [k if isinstance(k, float) else list(k) for k in model_K], "single": single, "K": Ks,

@@ -145,6 +145,8 @@ def read_curve(spec: str) -> tuple[str, dict]:
         rules = as_generalisation(result)["rules"]  # one model's result becomes the rule "single"
     except (ConfigError, KeyError, TypeError) as err:
         raise ConfigError(f"--curve {label}: {path} is not an evaluation over K ({err})") from None
+    if not isinstance(rules, dict):
+        raise ConfigError(f"--curve {label}: {path} is not an evaluation over K (its rules are not a mapping)")
     if not rule:
         if len(rules) != 1:
             raise ConfigError(f"--curve {label}: {path} is a bank evaluation; name its rule, PATH#RULE, one of {sorted(rules)}")

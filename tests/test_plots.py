@@ -50,13 +50,15 @@ def test_over_k_writes_panels(evals, tmp_path, capsys):
     ("x={bank}#max_q", "no rule 'max_q'"),
     ("x={notjson}", "not valid JSON"),
     ("x={notover}", "neither rules"),
+    ("x={rulelist}#trial", "rules are not a mapping"),
 ])
 def test_bad_curves_are_refused_by_name(evals, tmp_path, spec, words):
     one, bank = evals
     (tmp_path / "notjson.json").write_text("{")
     (tmp_path / "notover.json").write_text(json.dumps({"success_rate": 1.0}))
+    (tmp_path / "rulelist.json").write_text(json.dumps({"rules": ["trial"]}))
     spec = spec.format(missing=tmp_path / "nope.json", bank=bank, notjson=tmp_path / "notjson.json",
-                       notover=tmp_path / "notover.json")
+                       notover=tmp_path / "notover.json", rulelist=tmp_path / "rulelist.json")
     with pytest.raises(ConfigError, match=words):
         read_curve(spec)
 

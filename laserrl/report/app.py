@@ -21,8 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 from laserrl.model import load_model as read_model, machine_line
 from laserrl.config import ConfigError
 from laserrl.report.claims import build_claims, markdown, to_json
-from laserrl.report.context import (ReportContext, bank_entries, bank_paths, grid, load_model, producing_command,
-                                    read_json)
+from laserrl.report.context import ReportContext, bank_entries, bank_paths, grid, load_model, producing_command
+from laserrl.results import read_json
 from laserrl.report.figures import FIGURES, draw_figures
 from laserrl.report.spot import train_missing
 
