@@ -30,7 +30,7 @@ from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
-from laserrl.results import grid_success, summary
+from laserrl.results import failure_line, failure_modes, grid_success, summary
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 def load_qnet(state: Mapping[str, Any], action_spec):
@@ -208,7 +208,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
                           "mean_final_reward": sum(p["final_reward"] for p in rows) / len(rows),
                           "locked_end_deg": [min(ends), max(ends)] if ends else None,
                           "starts_deg": [min(starts), max(starts)]}
-    return {
+    result = {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
         "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
         "min_round_trips": min_round_trips(env_cfg), "K": Ks, "physics_changed": mismatch,
@@ -217,6 +217,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,
     }
+    return {**result, "failures": failure_modes(result)}
 
 
 def _cavities(env) -> list[dict] | None:
@@ -256,6 +257,7 @@ def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: s
                              int(cfg.get("seed", 0)))
     result = {"checkpoint": state["path"], **result}
     write_eval(result, out_dir, eval_cfg.get("plots", True))
+    print(f"success {result['success_rate']:.2f}; {failure_line(result['failures'])}")
     return result
 
 

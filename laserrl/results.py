@@ -47,3 +47,59 @@ def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> d
     rules = {"single": summary(result)}
     return {"bank": [], "bank_K": [], "single": single, "K": Ks, "stage": result.get("stage"), "seed": result.get("seed"),
             "rules": rules, "grid_success": grid_success(rules, len(Ks))}
+
+
+def failure_modes(result: Mapping[str, Any]) -> dict:
+    """How the failed rollouts of an ``evaluate_policy`` result failed, from its ``per_start``.
+
+    A failed rollout either never locked (r never reached ``success_r``) or locked and lost it;
+    with a hold level (``hold_r``, the four-controller protocol) the lock counts as lost at the
+    first step after the first lock where r < ``hold_r``, and ``steps_locked_before_loss`` gives
+    the median, least and most steps from the first lock to that step. ``hold_action_after_lock``
+    is the fraction of steps after the first lock, over every rollout that locked, on which no
+    controlled angle moved (the all-hold action). ``by_K``: the two counts per K.
+    """
+    success_r, hold_r = float(result["success_r"]), result.get("hold_r")
+    never, lost, locked_steps, by_K = 0, 0, [], {}
+    held, moved = 0, 0
+    for p in result["per_start"]:
+        r = p["reward_path"]
+        first = next((t for t, x in enumerate(r) if x >= success_r), None)
+        if first is not None:
+            path = p["angle_path_deg"]
+            still = [all(a == b for a, b in zip(path[t - 1], path[t])) for t in range(first + 1, len(path))]
+            held += sum(still)
+            moved += len(still) - sum(still)
+        if p["success"]:
+            continue
+        counts = by_K.setdefault(f"{float(p['K']):g}", {"never_locked": 0, "lost": 0})
+        if first is None:
+            never += 1
+            counts["never_locked"] += 1
+            continue
+        lost += 1
+        counts["lost"] += 1
+        if hold_r is not None:
+            drop = next((t for t in range(first + 1, len(r)) if r[t] < float(hold_r)), None)
+            if drop is not None:
+                locked_steps.append(drop - first)
+    locked_steps.sort()
+    spread = None
+    if locked_steps:
+        mid = len(locked_steps) // 2
+        median = locked_steps[mid] if len(locked_steps) % 2 else (locked_steps[mid - 1] + locked_steps[mid]) / 2
+        spread = {"median": median, "min": locked_steps[0], "max": locked_steps[-1]}
+    return {"failed": never + lost, "never_locked": never, "lost": lost, "steps_locked_before_loss": spread,
+            "hold_action_after_lock": held / (held + moved) if held + moved else None,
+            "by_K": dict(sorted(by_K.items(), key=lambda kv: float(kv[0])))}
+
+
+def failure_line(failures: Mapping[str, Any]) -> str:
+    """One line of ``failure_modes``' counts, as laserrl-eval prints them."""
+    text = f"failed {failures['failed']}: never locked {failures['never_locked']}, locked and lost it {failures['lost']}"
+    spread = failures.get("steps_locked_before_loss")
+    if spread:
+        text += f" (after {spread['median']:g} steps locked, median; {spread['min']}-{spread['max']})"
+    if failures.get("hold_action_after_lock") is not None:
+        text += f"; all-hold action on {100 * failures['hold_action_after_lock']:.1f} % of the steps after a lock"
+    return text

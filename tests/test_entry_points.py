@@ -227,7 +227,11 @@ def test_any_k_experiment_with_a_gru_records_its_memory_and_evaluates(tmp_path):
     res = run("laserrl-eval", f"checkpoint={model}", "eval.steps=3", "eval.K=[0.0,0.3]", "eval.repeats=2",
               "eval.plots=false", "eval.compile=false", f"hydra.run.dir={tmp_path / 'eval'}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
-    assert len(json.loads((tmp_path / "eval" / "eval.json").read_text())["per_start"]) == 4
+    result = json.loads((tmp_path / "eval" / "eval.json").read_text())
+    assert len(result["per_start"]) == 4
+    failures = result["failures"]  # how the failed draws failed, counted and printed
+    assert failures["failed"] == sum(not p["success"] for p in result["per_start"])
+    assert f"never locked {failures['never_locked']}" in res.stdout
     res = run("laserrl-control", "controller=all", "scenario=constant", f"checkpoint={model}", "num_cavities=2",
               "scenario.steps=3", "compile=false", "plots=false", "progress=false", f"hydra.run.dir={tmp_path / 'control'}",
               cwd=tmp_path)
