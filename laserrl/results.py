@@ -6,6 +6,7 @@ Pure functions of dicts and paths, imported by the evaluation, the plots and the
 from __future__ import annotations
 
 import json
+import statistics
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -52,19 +53,19 @@ def as_generalisation(result: Mapping[str, Any], single: str | None = None) -> d
 def failure_modes(result: Mapping[str, Any]) -> dict:
     """How the failed rollouts of an ``evaluate_policy`` result failed, from its ``per_start``.
 
-    A failed rollout either never locked (r never reached ``success_r``) or locked and lost it;
-    with a hold level (``hold_r``, the four-controller protocol) the lock counts as lost at the
+    A failed rollout either never locked (no ``steps_to_lock``: r never reached ``success_r``) or
+    locked and lost it; with a hold level (``hold_r``, the four-controller protocol) the lock counts as lost at the
     first step after the first lock where r < ``hold_r``, and ``steps_locked_before_loss`` gives
     the median, least and most steps from the first lock to that step. ``hold_action_after_lock``
     is the fraction of steps after the first lock, over every rollout that locked, on which no
     controlled angle moved (the all-hold action). ``by_K``: the two counts per K.
     """
-    success_r, hold_r = float(result["success_r"]), result.get("hold_r")
+    hold_r = result.get("hold_r")
     never, lost, locked_steps, by_K = 0, 0, [], {}
     held, moved = 0, 0
     for p in result["per_start"]:
         r = p["reward_path"]
-        first = next((t for t, x in enumerate(r) if x >= success_r), None)
+        first = None if p["steps_to_lock"] is None else p["steps_to_lock"] - 1  # the step index of the first lock
         if first is not None:
             path = p["angle_path_deg"]
             still = [all(a == b for a, b in zip(path[t - 1], path[t])) for t in range(first + 1, len(path))]
@@ -83,12 +84,8 @@ def failure_modes(result: Mapping[str, Any]) -> dict:
             drop = next((t for t in range(first + 1, len(r)) if r[t] < float(hold_r)), None)
             if drop is not None:
                 locked_steps.append(drop - first)
-    locked_steps.sort()
-    spread = None
-    if locked_steps:
-        mid = len(locked_steps) // 2
-        median = locked_steps[mid] if len(locked_steps) % 2 else (locked_steps[mid - 1] + locked_steps[mid]) / 2
-        spread = {"median": median, "min": locked_steps[0], "max": locked_steps[-1]}
+    spread = ({"median": statistics.median(locked_steps), "min": min(locked_steps), "max": max(locked_steps)}
+              if locked_steps else None)
     return {"failed": never + lost, "never_locked": never, "lost": lost, "steps_locked_before_loss": spread,
             "hold_action_after_lock": held / (held + moved) if held + moved else None,
             "by_K": dict(sorted(by_K.items(), key=lambda kv: float(kv[0])))}

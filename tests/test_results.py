@@ -5,7 +5,10 @@ from laserrl.results import failure_line, failure_modes
 
 
 def _start(K, rewards, angles, success):
-    return {"K": K, "reward_path": rewards, "angle_path_deg": angles, "success": success}
+    """One per_start entry as evaluate_policy writes it (steps_to_lock: 1 + the first step with r >= 0.15)."""
+    first = next((t for t, x in enumerate(rewards) if x >= 0.15), None)
+    return {"K": K, "reward_path": rewards, "angle_path_deg": angles, "success": success,
+            "steps_to_lock": None if first is None else first + 1}
 
 
 def _result(per_start, hold_r=0.1):
