@@ -28,6 +28,7 @@ from laserrl.agents.bank import nearest_model
 from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
+from laserrl.envs.actions import deltas_to_action
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
 from laserrl.results import failure_line, failure_modes, grid_success, summary
@@ -217,7 +218,21 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
         "mean_steps_to_lock": (sum(locks) / len(locks)) if locks else None,
         "by_K": by_K, "per_start": per_start,
     }
+    if "action_value" in rollout.keys():  # a Q-network's policy: does it value holding still once locked?
+        result["hold_value_gap"] = hold_value_gap(rollout["action_value"], r, threshold, len(ctrl))
     return {**result, "failures": failure_modes(result)}
+
+
+def hold_value_gap(action_value: torch.Tensor, r: torch.Tensor, success_r: float, num_controlled: int) -> dict:
+    """How far below its best action a Q-network values the all-hold action (no plate moves):
+    the median of max_a Q - Q(hold) over the steps taken from a lock (r >= ``success_r`` after
+    the step before) and over the other steps. ``action_value`` (B, T, actions), r (B, T)."""
+    hold = int(deltas_to_action(torch.zeros(num_controlled, dtype=torch.long)))
+    gap = (action_value.max(-1).values - action_value[..., hold]).double()
+    from_lock = torch.zeros_like(r, dtype=torch.bool)
+    from_lock[:, 1:] = r[:, :-1] >= success_r
+    med = lambda x: float(x.median()) if x.numel() else None  # noqa: E731
+    return {"from_lock": med(gap[from_lock]), "searching": med(gap[~from_lock])}
 
 
 def _cavities(env) -> list[dict] | None:
@@ -258,6 +273,10 @@ def evaluate_checkpoint(checkpoint: str, eval_cfg: Mapping[str, Any], out_dir: s
     result = {"checkpoint": state["path"], **result}
     write_eval(result, out_dir, eval_cfg.get("plots", True))
     print(f"success {result['success_rate']:.2f}; {failure_line(result['failures'])}")
+    gap = result.get("hold_value_gap")
+    if gap and None not in gap.values():
+        print(f"Q of the best action above the all-hold action's, median: {gap['from_lock']:.3g} on steps from a lock, "
+              f"{gap['searching']:.3g} on the others")
     return result
 
 

@@ -232,6 +232,8 @@ def test_any_k_experiment_with_a_gru_records_its_memory_and_evaluates(tmp_path):
     failures = result["failures"]  # how the failed draws failed, counted and printed
     assert failures["failed"] == sum(not p["success"] for p in result["per_start"])
     assert f"never locked {failures['never_locked']}" in res.stdout
+    gap = result["hold_value_gap"]  # the GRU's Q-values: how it values holding still (the first step is never from a lock)
+    assert set(gap) == {"from_lock", "searching"} and gap["searching"] >= 0
     res = run("laserrl-control", "controller=all", "scenario=constant", f"checkpoint={model}", "num_cavities=2",
               "scenario.steps=3", "compile=false", "plots=false", "progress=false", f"hydra.run.dir={tmp_path / 'control'}",
               cwd=tmp_path)

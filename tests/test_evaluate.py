@@ -21,6 +21,19 @@ def test_lock_then_hold_rule():
     assert success_mask(r, 0.15, 0.1).tolist() == [True, True, False, False, True]
 
 
+def test_hold_value_gap_splits_steps_taken_from_a_lock_from_the_others():
+    from laserrl.evaluate import hold_value_gap
+
+    # two controlled angles: 9 actions, the all-hold action is 4 (both digits 1)
+    q = torch.zeros(1, 4, 9)
+    q[0, :, 0] = torch.tensor([1.0, 2.0, 3.0, 5.0])  # the best action, above a hold valued 0
+    r = torch.tensor([[0.2, 0.0, 0.2, 0.0]])          # steps 1 and 3 are taken from a lock
+    assert hold_value_gap(q, r, 0.15, 2) == {"from_lock": 2.0, "searching": 1.0}  # medians of (2, 5) and (1, 3)
+    q[0, 3, 4] = 9.0                                  # holding valued best: gap 0 there
+    assert hold_value_gap(q, r, 0.15, 2)["from_lock"] == 0.0
+    assert hold_value_gap(q, torch.zeros(1, 4), 0.15, 2)["from_lock"] is None
+
+
 def test_success_rate_of_9_in_10_meets_a_target_of_90_percent():
     success = torch.tensor([True] * 9 + [False])
     assert success_rate(success) >= 0.9 and success_rate(success) == 0.9

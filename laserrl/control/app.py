@@ -25,9 +25,10 @@ from laserrl.config import ConfigError, _number
 from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillClimbParams, RandomSearch, RandomSearchParams
 from laserrl.control.esc import ESCParams, ExtremumSeeking
 from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
-from laserrl.control.metrics import per_cavity, summarise
+from laserrl.control.metrics import held_by_K0, per_cavity, summarise
 from laserrl.control.plant import CavityPlant, Plates
 from laserrl.control.scenarios import Scenario
+from laserrl.physics.checks import CAVITY_KEYS
 from laserrl.envs.laser_env import ANGLE_NAMES
 
 #: ``controller=all`` runs these, in this order
@@ -125,6 +126,7 @@ def _check(cfg: DictConfig) -> None:
     _number(cfg, "num_cavities", low=1, integer=True)
     _number(cfg, "seed", integer=True)
     _number(cfg, "locked_r", low=0)
+    _number(cfg, "success_r", low=0)
     _number(cfg, "hold_steps", low=1, integer=True)
     if cfg.threads is not None:
         _number(cfg, "threads", low=1, integer=True)
@@ -207,8 +209,13 @@ def run_control(cfg: DictConfig) -> dict:
     plates = _params(Plates, container.get("plates") or {}, "plates")
     K, init_angles = scenario.sample(B, seed)
     # every controller on its own copy of the B cavities, all in one plant
-    plant = CavityPlant(env_cfg, controlled, B * len(names), scenario.steps, seed=seed,
-                        init_fields=scenario.init_fields, device=cfg.device, plates=plates)
+    try:
+        plant = CavityPlant(env_cfg, controlled, B * len(names), scenario.steps, seed=seed, init_fields=scenario.init_fields,
+                            device=cfg.device, plates=plates, physics_spread=container.get("physics_spread"), copies=len(names))
+    except ValueError as err:
+        if "physics_spread" in str(err):
+            raise ConfigError(str(err)) from None
+        raise
     # a policy of its own for each controller: a bank's trial rule keeps per-cavity state
     controllers = {n: build_controller(n, configs[n], controlled, B, seed,
                                        policy_for(plant) if policy_for and n in NEEDS_CHECKPOINT else None,
@@ -221,8 +228,11 @@ def run_control(cfg: DictConfig) -> dict:
     idx = [ANGLE_NAMES.index(a) for a in controlled]
     for n in names:
         trace = traces_np[n]
-        cav = per_cavity(trace["r"], trace["round_trips"], scenario.jumps["times"], float(cfg.locked_r), int(cfg.hold_steps))
+        cav = per_cavity(trace["r"], trace["round_trips"], scenario.jumps["times"], float(cfg.locked_r), int(cfg.hold_steps),
+                         float(cfg.success_r))
         results[n] = {"summary": summarise(cav, len(scenario.jumps["times"])), "per_cavity": cav}
+        if isinstance(scenario.K0, list):  # a grid of K: success per K, as laserrl-eval's
+            results[n]["summary"]["held_to_end_by_K0"] = held_by_K0(cav, scenario.K0)
         traces[n] = {"r": _rounded(trace["r"]), "angles_deg": _rounded(trace["angles"][:, :, idx], 3)}
         if trace["mode"] is not None:
             traces[n]["mode"] = trace["mode"].tolist()
@@ -232,9 +242,13 @@ def run_control(cfg: DictConfig) -> dict:
     out = {
         "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
         "num_cavities": B, "seed": seed, "controlled": controlled, "locked_r": float(cfg.locked_r),
+        "success_r": float(cfg.success_r),
         "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state and not cfg.get("bank") else None,
         **({"bank": state["bank"], "bank_rule": cfg.bank_rule} if cfg.get("bank") else {}),
         "plates": {"noise_deg": plates.noise_deg, "backlash_deg": plates.backlash_deg},
+        "physics_spread": container.get("physics_spread"),
+        **({} if plant.cavities is None else {"cavities": [dict(zip(CAVITY_KEYS, map(float, row)))
+                                                           for row in plant.cavities[:B].double().cpu()]}),
         "env": {k: env_cfg[k] for k in ("max_round_trips", "tol", "dtype") if k in env_cfg} | {"physics": env_cfg.get("physics")},
         "seconds": round(seconds, 1), "results": results, "K": _rounded(K), "init_angles_deg": _rounded(init_angles, 3), "traces": traces,
     }
@@ -295,15 +309,26 @@ def _row(name: str, s: dict) -> str:
 
 def comparison_table(out: dict) -> str:
     """Markdown table of the summaries (mean ± standard deviation over cavities)."""
-    lines = ["| controller | time locked (r >= %g) | after the first lock | mean r | steps to first lock (locked) | "
-             "recovery after a jump, steps (recovered) | round trips |" % out["locked_r"], "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| controller | time locked (r >= %g) | after the first lock | held to the end | mean r | "
+             "steps to first lock (locked) | recovery after a jump, steps (recovered) | round trips |" % out["locked_r"],
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for n in out["controllers"]:
         s = out["results"][n]["summary"]
         rec = "-" if s["recovered"] is None else f"{_fmt(s['recovery_steps'], 1)} ({100 * s['recovered']:.0f} %)"
+        held = "-" if s.get("held_to_end") is None else f"{100 * s['held_to_end']:.0f} %"
         lines.append(f"| {n} | {_fmt(s['frac_locked'], pct=True)} | {_fmt(s['locked_after_first_lock'], pct=True)} | "
-                     f"{_fmt(s['mean_r'])} | "
+                     f"{held} | {_fmt(s['mean_r'])} | "
                      f"{_fmt(s['first_lock_step'], 1)} ({100 * s['locked_ever']:.0f} %) | {rec} | "
                      f"{s['round_trips']['mean']:.0f} |")
+    by_K = {n: out["results"][n]["summary"].get("held_to_end_by_K0") for n in out["controllers"]}
+    if all(by_K.values()):  # scenario.K0 a list: reach r >= success_r and hold r >= locked_r to the end, per K
+        Ks = list(next(iter(by_K.values())))
+        lines += ["", "Held to the end (reach r >= %g, then r >= %g at every step), per K0:" % (
+            out.get("success_r", float("nan")), out["locked_r"]), "",
+                  "| controller | " + " | ".join(Ks) + " | K with >= 90 % |", "|---|" + "---:|" * (len(Ks) + 1)]
+        for n, rates in by_K.items():
+            lines.append(f"| {n} | " + " | ".join(f"{rates[k]:.2f}" for k in Ks) +
+                         f" | {sum(v >= 0.9 for v in rates.values())} of {len(Ks)} |")
     return "\n".join(lines)
 
 

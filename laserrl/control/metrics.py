@@ -11,7 +11,9 @@ With r(t) the reward after agent step t (t = 0 .. T-1) and "locked" meaning r >=
 * ``recovery_steps``: for every jump of K at step t_j, s - t_j for the first s >= t_j that
   starts a run of ``hold_steps`` locked steps before the next jump (or the end); 0 when the
   lock survives the jump, None when the cavity does not lock again in time;
-* ``round_trips``: cavity round trips spent over the run.
+* ``round_trips``: cavity round trips spent over the run;
+* ``held_to_end`` (with ``success_r`` given): r reaches ``success_r`` and stays >= locked_r at
+  every later step to the end: ``laserrl-eval``'s success with ``hold_r`` = locked_r.
 """
 from __future__ import annotations
 
@@ -33,8 +35,15 @@ def _first(mask: np.ndarray) -> list[int | None]:
     return [int(np.argmax(row)) if row.any() else None for row in mask]
 
 
+def held_to_end(r: np.ndarray, success_r: float, locked_r: float) -> np.ndarray:
+    """(B,) bool: some step reaches r >= success_r and no later step falls below locked_r."""
+    below = r < locked_r
+    below_later = np.flip(np.cumsum(np.flip(below, 1), 1), 1) - below  # steps after t below locked_r
+    return ((r >= success_r) & (below_later == 0)).any(1)
+
+
 def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int], locked_r: float,
-               hold_steps: int) -> dict:
+               hold_steps: int, success_r: float | None = None) -> dict:
     """Metrics of every cavity from r (B, T) and round trips (B, T)."""
     B, T = r.shape
     locked = r >= locked_r
@@ -51,6 +60,7 @@ def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int]
         "locked_after_first_lock": [None if f is None else float(locked[b, f:].mean()) for b, f in enumerate(first)],
         "recovery_steps": [[recovery[j][b] for j in range(len(jump_times))] for b in range(B)],
         "round_trips": round_trips.sum(1).astype(int).tolist(),
+        **({} if success_r is None else {"held_to_end": held_to_end(r, success_r, locked_r).tolist()}),
     }
 
 
@@ -69,8 +79,18 @@ def summarise(cav: dict, num_jumps: int) -> dict:
     out = {k: spread(cav[k]) for k in ("frac_locked", "mean_r", "first_lock_step", "locked_after_first_lock",
                                        "round_trips")}
     out["locked_ever"] = sum(v is not None for v in cav["first_lock_step"]) / B
+    if "held_to_end" in cav:
+        out["held_to_end"] = sum(cav["held_to_end"]) / B
     pooled = [rec[j] for rec in cav["recovery_steps"] for j in range(num_jumps)]
     out["recovery_steps"] = spread(pooled)
     out["recovered"] = (sum(v is not None for v in pooled) / len(pooled)) if pooled else None
     out["recovery_by_jump"] = [spread([rec[j] for rec in cav["recovery_steps"]]) for j in range(num_jumps)]
     return out
+
+
+def held_by_K0(cav: dict, K0: Sequence[float]) -> dict[str, float]:
+    """Fraction of the cavities of each start value ``K0[i % len(K0)]`` that held to the end."""
+    groups: dict[str, list[bool]] = {}
+    for i, ok in enumerate(cav["held_to_end"]):
+        groups.setdefault(f"{K0[i % len(K0)]:g}", []).append(bool(ok))
+    return {k: sum(v) / len(v) for k, v in groups.items()}

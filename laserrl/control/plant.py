@@ -31,8 +31,8 @@ from tensordict import TensorDict
 
 from laserrl.envs.actions import hold_action
 from laserrl.envs.factory import make_env
-from laserrl.envs.laser_env import reset_at
-from laserrl.envs.step import wrap_angle
+from laserrl.envs.laser_env import _spread, base_env_of, reset_at
+from laserrl.envs.step import draw_cavities, wrap_angle
 
 
 def _wrap_deg(x: torch.Tensor) -> torch.Tensor:
@@ -79,14 +79,27 @@ class CavityPlant:
         init_fields: "sech" or "noise" initial fields.  seed: the env's generator seed.
         plates: how the plates answer commands (``Plates``; default exact). The plates' noise
             is drawn from its own generator, seeded by ``seed``.
+        physics_spread: None (the cavity the config names), or cavities other than it: D, E0,
+            tau, g0, Gamma each drawn within +-fraction (one number, or one per parameter) of
+            it, ``num_cavities // copies`` cavities from a generator seeded by ``seed``, repeated
+            ``copies`` times (one copy per controller, so that all face the same cavities).
     """
 
     def __init__(self, env_cfg: Mapping[str, Any], controlled, num_cavities: int, steps: int, seed: int = 0,
-                 init_fields: str = "sech", device: str = "cpu", plates: Plates = Plates()):
+                 init_fields: str = "sech", device: str = "cpu", plates: Plates = Plates(),
+                 physics_spread=None, copies: int = 1):
         stage = {"controlled": list(controlled), "steps_deg": [2.0] * len(controlled), "init_fields": init_fields}
-        env_cfg = {**dict(env_cfg), "physics_spread": None}  # the cavity the config names, not a training spread
+        spread = _spread(physics_spread)  # not the model's training spread: the cavities this run faces
+        env_cfg = {**dict(env_cfg), "physics_spread": None if spread is None else physics_spread}
         self.env = make_env(env_cfg, stage, num_cavities, seed, device=device, centred=False, max_steps=steps)
         self.num_cavities = num_cavities
+        self.cavities = None  # (num_cavities, 5) D, E0, tau, g0, Gamma of every cavity, or None: the nominal one
+        if spread is not None:
+            if num_cavities % copies:
+                raise ValueError(f"num_cavities ({num_cavities}) must be a multiple of copies ({copies})")
+            draw = draw_cavities(base_env_of(self.env).params, spread, num_cavities // copies,
+                                 torch.Generator().manual_seed(int(seed) + 104729), device=self.env.device)
+            self.cavities = draw.repeat(copies, 1)
         self._hold = torch.full((num_cavities,), hold_action(len(controlled)), dtype=torch.int64, device=self.env.device)
         self.obs: TensorDict | None = None
         self.plates = plates
@@ -98,6 +111,9 @@ class CavityPlant:
         td = TensorDict(init_angles=torch.deg2rad(angles_deg.to(torch.float64)), init_K=K.to(torch.float64),
                         batch_size=[self.num_cavities])
         self.obs = reset_at(self.env, td)
+        if self.cavities is not None:  # the run's cavities in place of the env's own draw (drawn after
+            # the initial fields, which do not depend on them)
+            base_env_of(self.env).state.cavity = self.cavities.clone()
         self.commanded = self.true_angles_deg
         return self.obs
 

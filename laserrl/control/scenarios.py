@@ -4,6 +4,9 @@ K(t) at agent step t = 0 .. steps-1 (the value the cavity runs with during step 
 
     K(t) = clip(K0 + drift(t) + sum of jumps up to t, bounds)
 
+* ``K0``: one value for every cavity, or a list: cavity i starts at ``K0[i % len(K0)]`` (with
+  no drift and no jumps, the fixed-K grid of ``laserrl-eval`` as one run of cavities).
+
 * drift "none"; "random_walk": a Gaussian random walk with ``sigma`` per step, reflected at
   ``bounds`` (so it stays bounded); "sinusoid": ``amplitude`` sin(2 pi t / ``period`` + phase),
   phase uniform in [0, 2 pi) per cavity if ``random_phase``.
@@ -29,7 +32,7 @@ from laserrl.envs.laser_env import ANGLE_NAMES
 class Scenario:
     name: str = "constant"
     steps: int = 200
-    K0: float = 0.1
+    K0: float | Sequence[float] = 0.1
     bounds: Sequence[float] = (0.0, 0.4)
     drift: Mapping[str, Any] = field(default_factory=lambda: {"kind": "none"})
     jumps: Mapping[str, Any] = field(default_factory=lambda: {"times": [], "range": [0.0, 0.4], "min_size": 0.0})
@@ -43,8 +46,12 @@ class Scenario:
         self.steps = int(self.steps)
         lo, hi = _pair(self.bounds, "scenario.bounds")
         self.bounds = (lo, hi)
-        if not _finite(self.K0) or not lo <= self.K0 <= hi:
-            raise ValueError(f"scenario.K0 must lie within scenario.bounds {list(self.bounds)}, got {self.K0!r}")
+        starts = [self.K0] if _finite(self.K0) else self.K0
+        if isinstance(starts, (str, bytes)) or not isinstance(starts, Sequence) or not starts or \
+                not all(_finite(k) and lo <= k <= hi for k in starts):
+            raise ValueError(f"scenario.K0 must be a number or a non-empty list of numbers within scenario.bounds "
+                             f"{list(self.bounds)}, got {self.K0!r}")
+        self.K0 = float(self.K0) if _finite(self.K0) else [float(k) for k in starts]
         drift = {"kind": "none", **dict(self.drift)}
         kind = drift["kind"]
         if kind not in ("none", "random_walk", "sinusoid"):
@@ -78,8 +85,12 @@ class Scenario:
     def cavity_rng(self, seed: int, i: int) -> np.random.Generator:
         return np.random.default_rng([int(seed), int(i)])
 
-    def K_trajectory(self, rng: np.random.Generator) -> np.ndarray:
-        """K(t), t = 0 .. steps-1, of one cavity."""
+    def start_K(self, i: int) -> float:
+        """K0 of cavity i."""
+        return self.K0 if isinstance(self.K0, float) else self.K0[i % len(self.K0)]
+
+    def K_trajectory(self, rng: np.random.Generator, K0: float | None = None) -> np.ndarray:
+        """K(t), t = 0 .. steps-1, of one cavity starting at ``K0`` (default: cavity 0's)."""
         lo, hi = self.bounds
         T, d = self.steps, self.drift
         K = np.empty(T)
@@ -87,7 +98,7 @@ class Scenario:
         noise = rng.standard_normal(T) * float(d.get("sigma", 0.0)) if d["kind"] == "random_walk" else np.zeros(T)
         phase = rng.uniform(0, 2 * np.pi) if d["kind"] == "sinusoid" and d.get("random_phase", True) else 0.0
         jump_draws = rng.random((len(self.jumps["times"]), 64))
-        level, jumps = float(self.K0), 0
+        level, jumps = float(self.start_K(0) if K0 is None else K0), 0
         for t in range(T):
             if jumps < len(self.jumps["times"]) and t == self.jumps["times"][jumps]:
                 level = self._jump_target(level, jump_draws[jumps])
@@ -116,7 +127,7 @@ class Scenario:
         Ks, angles = [], []
         for i in range(num_cavities):
             rng = self.cavity_rng(seed, i)
-            Ks.append(self.K_trajectory(rng))
+            Ks.append(self.K_trajectory(rng, self.start_K(i)))
             angles.append(self.init_angles(rng))
         return np.stack(Ks), np.stack(angles)
 

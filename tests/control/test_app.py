@@ -75,6 +75,7 @@ def _run(overrides, tmp_path):
     (["controller=esc", "metric=speed"], "metric"),
     (["controller=esc", "scenario.jumps.times=[9]"], "scenario.jumps.times"),
     (["controller=esc", "plates.noise_deg=-1"], "plates.noise_deg"),
+    (["controller=esc", "physics_spread=0.9"], "physics_spread"),
     (["controller=esc", "plates.backlash_deg=.nan"], "plates.backlash_deg"),
     (["controller=esc", "+plates.friction=1"], "plates: .*friction"),
     (["controller=all", "controller.only=[esc,bogus]"], "controller.only"),
@@ -222,3 +223,26 @@ def test_hostile_value_on_the_command_line_is_one_line(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert res.stderr.strip().splitlines() == ["laserrl-control: error: controller: max_step_deg must be > 0, got 0"]
     assert not (tmp_path / "control.json").exists()
+
+
+def test_the_fixed_K_grid_runs_the_K_blind_agent_as_laserrl_eval_scores_it(tmp_path):
+    """experiment=any_k_grid_hybrid: 10 cavities at each of laserrl-eval's 19 K values; a cavity
+    succeeds as in laserrl-eval (held_to_end), and control.md gives the success per K."""
+    import numpy as np
+
+    from laserrl.control.metrics import held_to_end
+
+    cfg = _compose(["experiment=any_k_grid_hybrid"])
+    assert cfg.num_cavities == 10 * len(cfg.scenario.K0) == 190 and cfg.checkpoint == "zoo:miso-any-k-gru-s3"
+    out = run_control(_compose(["experiment=any_k_grid_hybrid", "num_cavities=4", "scenario.K0=[0.0,0.3]",
+                                "scenario.steps=3", "compile=false", "plots=false", "progress=false",
+                                f"run_dir={tmp_path}"]))
+    assert out["controllers"] == ["hybrid", "rl"]
+    assert np.array_equal(np.array(out["K"])[:, 0], [0.0, 0.3, 0.0, 0.3])
+    for name in out["controllers"]:
+        r = np.array(out["traces"][name]["r"])
+        held = held_to_end(r, 0.15, 0.1)
+        summary = out["results"][name]["summary"]
+        assert summary["held_to_end_by_K0"] == {"0": held[[0, 2]].mean(), "0.3": held[[1, 3]].mean()}
+    table = (tmp_path / "control.md").read_text()
+    assert "per K0" in table and "| hybrid | " in table.split("per K0")[1]

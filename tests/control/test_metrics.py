@@ -2,7 +2,10 @@
 import numpy as np
 import pytest
 
-from laserrl.control.metrics import per_cavity, summarise
+import torch
+
+from laserrl.control.metrics import held_by_K0, per_cavity, summarise
+from laserrl.evaluate import success_mask
 
 
 def test_locked_after_first_lock_counts_from_the_first_held_lock():
@@ -15,3 +18,18 @@ def test_locked_after_first_lock_counts_from_the_first_held_lock():
     assert cav["frac_locked"][0] == pytest.approx(5 / 8)  # the blip counts in the time locked, not here
     s = summarise(cav, num_jumps=1)
     assert s["locked_after_first_lock"]["n"] == 2 and s["locked_after_first_lock"]["mean"] == pytest.approx(0.9)
+
+
+def test_held_to_end_is_laserrl_evals_success():
+    r = np.array([[0.0, 0.16, 0.12, 0.11, 0.1],    # reached 0.15, never below 0.1 after: held
+                  [0.16, 0.05, 0.12, 0.12, 0.12],   # lost, and never back to 0.15
+                  [0.16, 0.05, 0.16, 0.12, 0.12],   # lost, then reached again and held
+                  [0.12, 0.12, 0.14, 0.12, 0.12]])  # never reached 0.15
+    cav = per_cavity(r, np.ones_like(r), jump_times=[], locked_r=0.1, hold_steps=1, success_r=0.15)
+    assert cav["held_to_end"] == [True, False, True, False]
+    rng = np.random.default_rng(0)
+    noisy = rng.random((500, 12)) * 0.2
+    expected = success_mask(torch.from_numpy(noisy), 0.15, 0.1).tolist()
+    assert per_cavity(noisy, np.ones_like(noisy), [], 0.1, 1, success_r=0.15)["held_to_end"] == expected
+    assert summarise(cav, num_jumps=0)["held_to_end"] == 0.5
+    assert held_by_K0(cav, [0.0, 0.2]) == {"0": 1.0, "0.2": 0.0}   # cavities 0, 2 at K0 = 0; 1, 3 at 0.2

@@ -110,3 +110,31 @@ def test_a_plant_with_stacked_readings_starts_where_it_is_told():
     obs = plant.step(cmd)
     assert torch.allclose(obs["angles"][:, -4:].double(), torch.deg2rad(cmd), atol=1e-6)  # the newest: the commands
     assert plant.true_angles_deg[0, 0] == pytest.approx(60.0) and plant.true_angles_deg[1, 0] == pytest.approx(-68.0)
+
+
+def test_a_physics_spread_gives_every_controller_the_same_other_cavities():
+    """physics_spread: num_cavities // copies cavities drawn within +-spread of the nominal one and
+    repeated per copy, and the cavity runs with them (r differs from the nominal cavity's)."""
+    from laserrl.envs.laser_env import base_env_of
+    from laserrl.physics.checks import CAVITY_KEYS
+
+    angles = torch.tensor([[-20.0, 3.0, 28.0, 88.0]] * 4, dtype=torch.float64)
+    K = torch.full((4,), 0.1, dtype=torch.float64)
+    runs = {}
+    for spread in (None, 0.1):
+        plant = CavityPlant(_env(), ["alpha1"], 4, steps=2, seed=0, physics_spread=spread, copies=2)
+        plant.reset(angles, K)
+        runs[spread] = (plant, plant.step(angles)["r"].squeeze(-1))
+    plant, r = runs[0.1]
+    assert runs[None][0].cavities is None
+    nominal = base_env_of(plant.env).params
+    nominal = torch.tensor([float(getattr(nominal, k)) for k in CAVITY_KEYS], dtype=torch.float64)
+    cav = plant.cavities
+    assert torch.equal(cav[:2], cav[2:]) and not torch.equal(cav[0], cav[1])
+    assert ((cav / nominal - 1).abs() <= 0.1 + 1e-12).all() and ((cav / nominal - 1).abs() > 0.01).any()
+    assert torch.equal(base_env_of(plant.env).state.cavity, cav)
+    assert torch.allclose(r[:2], r[2:]) and not torch.allclose(r, runs[None][1])
+    with pytest.raises(ValueError, match="physics_spread"):
+        CavityPlant(_env(), ["alpha1"], 4, steps=2, physics_spread=0.9)
+    with pytest.raises(ValueError, match="copies"):
+        CavityPlant(_env(), ["alpha1"], 5, steps=2, physics_spread=0.1, copies=2)

@@ -50,6 +50,14 @@ def test_constant():
     assert (K == 0.1).all()
 
 
+def test_a_list_of_K0_gives_each_cavity_its_value_in_turn():
+    sc = _scenario("constant", ["scenario.K0=[0.0,0.2,0.4]", "scenario.bounds=[-0.2,0.4]"])
+    K, _ = sc.sample(7, seed=0)
+    assert np.array_equal(K[:, 0], [0.0, 0.2, 0.4, 0.0, 0.2, 0.4, 0.0]) and (K == K[:, :1]).all()
+    drifting = _scenario("drift_jumps_wide", ["scenario.K0=[-0.2,0.4]"]).sample(2, seed=0)[0]
+    assert drifting[0, 0] == -0.2 and drifting[1, 0] == 0.4 and not (drifting[0] == -0.2).all()
+
+
 def test_jumps_at_the_configured_times_and_only_there():
     sc = _scenario("jumps", ["scenario.jumps.times=[40,90]", "scenario.jumps.min_size=0.15"])
     K, _ = sc.sample(32, seed=1)
@@ -97,7 +105,8 @@ def test_a_cavity_has_its_trajectory_whatever_the_batch():
 
 @pytest.mark.parametrize("override, match", [
     ("scenario.jumps.times=[0]", "jumps.times"), ("scenario.jumps.times=[500]", "jumps.times"),
-    ("scenario.jumps.times=[50,20]", "jumps.times"), ("scenario.K0=0.9", "K0"),
+    ("scenario.jumps.times=[50,20]", "jumps.times"), ("scenario.K0=0.9", "K0"), ("scenario.K0=[0.1,0.9]", "K0"),
+    ("scenario.K0=[]", "K0"), ("scenario.K0=high", "K0"),
     ("scenario.bounds=[0.4,0.0]", "bounds"), ("scenario.drift.kind=brownian", "drift.kind"),
     ("scenario.drift.sigma=-1", "drift.sigma"), ("scenario.steps=0", "steps"),
     ("scenario.jumps.range=[-1,0.4]", "jumps.range"),
