@@ -28,7 +28,7 @@ from laserrl.agents.bank import nearest_model
 from laserrl.agents.dqn import build_qnet, make_actor
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import ensemble_members, load_model
-from laserrl.envs.actions import deltas_to_action
+from laserrl.envs.actions import hold_action
 from laserrl.envs.factory import make_env, min_round_trips
 from laserrl.envs.laser_env import ANGLE_NAMES, base_env_of, reset_at
 from laserrl.results import failure_line, failure_modes, grid_success, summary
@@ -227,7 +227,7 @@ def hold_value_gap(action_value: torch.Tensor, r: torch.Tensor, success_r: float
     """How far below its best action a Q-network values the all-hold action (no plate moves):
     the median of max_a Q - Q(hold) over the steps taken from a lock (r >= ``success_r`` after
     the step before) and over the other steps. ``action_value`` (B, T, actions), r (B, T)."""
-    hold = int(deltas_to_action(torch.zeros(num_controlled, dtype=torch.long)))
+    hold = hold_action(num_controlled)
     gap = (action_value.max(-1).values - action_value[..., hold]).double()
     from_lock = torch.zeros_like(r, dtype=torch.bool)
     from_lock[:, 1:] = r[:, :-1] >= success_r

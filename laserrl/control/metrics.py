@@ -37,9 +37,11 @@ def _first(mask: np.ndarray) -> list[int | None]:
 
 def held_to_end(r: np.ndarray, success_r: float, locked_r: float) -> np.ndarray:
     """(B,) bool: some step reaches r >= success_r and no later step falls below locked_r."""
-    below = r < locked_r
-    below_later = np.flip(np.cumsum(np.flip(below, 1), 1), 1) - below  # steps after t below locked_r
-    return ((r >= success_r) & (below_later == 0)).any(1)
+    import torch
+
+    from laserrl.evaluate import success_mask
+
+    return success_mask(torch.from_numpy(np.asarray(r, dtype=np.float64)), success_r, locked_r).numpy()
 
 
 def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int], locked_r: float,
