@@ -4,7 +4,12 @@ The hybrid's rule (per cavity, the paper's section 4):
 
 * deep RL -> ESC when r >= ``lock_r`` for ``lock_steps`` consecutive steps; ESC starts
   from the current angles (estimates = angles, filters in the steady state of the
-  current r);
+  current r). With ``settle_steps`` = w > 0, also only once the agent's climb has
+  levelled off: r is no more than ``settle_rise`` (a fraction) above the highest r of the
+  w steps before. The level alone is calibrated on one cavity (the instruments' reading
+  for r = 0.15 there); on a cavity with more gain the same reading comes at a lower r, and
+  ESC engaged on the level would hold a state that is not mode-locked. The agent climbs
+  through that state, so waiting for the climb to end does not depend on the calibration;
 * ESC -> deep RL when r < ``unlock_r`` for ``unlock_steps`` consecutive steps (the lock
   is lost, e.g. after a jump of K that ESC's local search cannot follow); with
   ``restart_memory`` a recurrent agent's memory restarts there, as at an episode's start.
@@ -87,6 +92,8 @@ class HybridRule:
     unlock_r: float = 0.1
     unlock_steps: int = 3
     restart_memory: bool = False  # a recurrent agent's memory restarts when the lock is lost
+    settle_steps: int = 0  # > 0: ESC engages only once r rose by at most settle_rise over these steps
+    settle_rise: float = 0.02
 
     def __post_init__(self):
         for name in ("lock_r", "unlock_r"):
@@ -95,6 +102,9 @@ class HybridRule:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         for name in ("lock_steps", "unlock_steps"):
             integer(self, name, 1)
+        integer(self, "settle_steps", 0)
+        if not is_finite_number(self.settle_rise) or self.settle_rise < 0:
+            raise ValueError(f"settle_rise must be a finite number >= 0, got {self.settle_rise!r}")
         if not isinstance(self.restart_memory, bool):
             raise ValueError(f"restart_memory must be true or false, got {self.restart_memory!r}")
         if self.unlock_r > self.lock_r:
@@ -113,9 +123,12 @@ class Hybrid:
         self._above = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r >= lock_r
         self._below = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r < unlock_r
         self.switches = torch.zeros(num_cavities, dtype=torch.int64)
+        # r of the last settle_steps steps (newest last); -inf before the first step: nothing to level off from
+        self._recent = torch.full((num_cavities, rule.settle_steps), float("-inf"), dtype=torch.float64)
 
     def reset(self, obs, angles_deg) -> None:
         self.mode.fill_(MODE_RL)
+        self._recent.fill_(float("-inf"))
         self._above.zero_()
         self._below.zero_()
         self.switches.zero_()
@@ -127,6 +140,11 @@ class Hybrid:
         self._below = torch.where(r < self.rule.unlock_r, self._below + 1, 0)
         esc = self.mode == MODE_ESC
         engage = ~esc & (self._above >= self.rule.lock_steps)
+        if self.rule.settle_steps:
+            # the climb has ended: r is not above the recent steps' best by more than settle_rise
+            settled = r.to(torch.float64) <= (1 + self.rule.settle_rise) * self._recent.max(-1).values
+            engage &= settled
+            self._recent = torch.cat([self._recent[:, 1:], r.to(torch.float64)[:, None]], dim=1)
         release = esc & (self._below >= self.rule.unlock_steps)
         if bool(engage.any()):
             self.esc.reset(obs, angles_deg, engage)

@@ -91,6 +91,7 @@ def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
 @pytest.mark.parametrize("overrides, match", [
     (["controller=rl", "controlled=[alpha2]"], "differs"),
     (["controller=hybrid", "controller.unlock_r=0.3"], "controller: unlock_r"),
+    (["controller=hybrid", "controller.settle_rise=-0.1"], "controller: settle_rise"),
     (["controller=all", "controller.hybrid.esc.lowpass_cutoff=0.7"], "controller.hybrid.esc: lowpass_cutoff"),
     (["controller=all", "metric_controller=best"], "metric_controller"),
 ])

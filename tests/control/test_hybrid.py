@@ -49,6 +49,29 @@ def test_hybrid_hands_over_and_back_by_the_rule():
     assert hybrid.switches.tolist() == [3, 0]
 
 
+def test_hybrid_with_settle_steps_waits_for_the_climb_to_end():
+    """Above lock_r, ESC takes over only once r is within settle_rise of the best of the steps before."""
+    rule = HybridRule(lock_r=0.15, lock_steps=1, unlock_r=0.1, unlock_steps=3, settle_steps=2, settle_rise=0.05)
+    hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(), rule, ["alpha1"], 2)
+    # cavity 0 climbs past lock_r and levels off at step 4 (0.31 <= 1.05 * 0.30); cavity 1 keeps climbing by 10 %
+    r0 = [0.05, 0.10, 0.20, 0.30, 0.31, 0.30]
+    r1 = [0.05, 0.10, 0.16, 0.176, 0.194, 0.213]
+    angles = torch.tensor([[-30.0, 3.0, 28.0, 88.0]] * 2, dtype=torch.float64)
+    hybrid.reset(_obs([0.0, 0.0]), angles)
+    modes = []
+    for t in range(len(r0)):
+        hybrid.act(_obs([r0[t], r1[t]]), angles)
+        modes.append(hybrid.mode.tolist())
+    assert [m[0] for m in modes] == [0, 0, 0, 0, 1, 1]
+    assert [m[1] for m in modes] == [0] * 6
+    # without the settle rule both engage at their first step above lock_r
+    plain = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(), HybridRule(lock_r=0.15), ["alpha1"], 2)
+    plain.reset(_obs([0.0, 0.0]), angles)
+    for t in range(3):
+        plain.act(_obs([r0[t], r1[t]]), angles)
+    assert plain.mode.tolist() == [MODE_ESC, MODE_ESC]
+
+
 def test_esc_restarts_from_the_current_angles_on_engagement():
     hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(amplitude_deg=0.5),
                     HybridRule(lock_steps=1), ["alpha1"], 1)
@@ -62,7 +85,9 @@ def test_esc_restarts_from_the_current_angles_on_engagement():
 @pytest.mark.parametrize("bad, match", [({"unlock_r": 0.2, "lock_r": 0.15}, "unlock_r"), ({"lock_steps": 0}, "lock_steps"),
                                         ({"unlock_steps": 1.5}, "unlock_steps"), ({"lock_r": float("nan")}, "lock_r"),
                                         ({"lock_steps": float("inf")}, "lock_steps"), ({"unlock_steps": "3"}, "unlock_steps"),
-                                        ({"restart_memory": "yes"}, "restart_memory")])
+                                        ({"restart_memory": "yes"}, "restart_memory"),
+                                        ({"settle_steps": -1}, "settle_steps"),
+                                        ({"settle_rise": float("nan")}, "settle_rise")])
 def test_bad_rule_names_the_value(bad, match):
     with pytest.raises(ValueError, match=match):
         HybridRule(**bad)
