@@ -96,15 +96,13 @@ class HybridRule:
     settle_rise: float = 0.02
 
     def __post_init__(self):
-        for name in ("lock_r", "unlock_r"):
+        for name in ("lock_r", "unlock_r", "settle_rise"):
             v = getattr(self, name)
             if not is_finite_number(v) or v < 0:
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
         for name in ("lock_steps", "unlock_steps"):
             integer(self, name, 1)
         integer(self, "settle_steps", 0)
-        if not is_finite_number(self.settle_rise) or self.settle_rise < 0:
-            raise ValueError(f"settle_rise must be a finite number >= 0, got {self.settle_rise!r}")
         if not isinstance(self.restart_memory, bool):
             raise ValueError(f"restart_memory must be true or false, got {self.restart_memory!r}")
         if self.unlock_r > self.lock_r:
@@ -142,9 +140,9 @@ class Hybrid:
         engage = ~esc & (self._above >= self.rule.lock_steps)
         if self.rule.settle_steps:
             # the climb has ended: r is not above the recent steps' best by more than settle_rise
-            settled = r.to(torch.float64) <= (1 + self.rule.settle_rise) * self._recent.max(-1).values
-            engage &= settled
-            self._recent = torch.cat([self._recent[:, 1:], r.to(torch.float64)[:, None]], dim=1)
+            r64 = r.to(torch.float64)
+            engage &= r64 <= (1 + self.rule.settle_rise) * self._recent.max(-1).values
+            self._recent = torch.cat([self._recent[:, 1:], r64[:, None]], dim=1)
         release = esc & (self._below >= self.rule.unlock_steps)
         if bool(engage.any()):
             self.esc.reset(obs, angles_deg, engage)
