@@ -43,8 +43,11 @@ def _short_protocol(name: str, recorded: dict) -> dict:
 
 
 def _replica(name: str) -> bool:
-    """The seeds of a recipe (NAME-sS) beside the model the docs name: re-evaluated in the slow run."""
-    return re.search(r"-s\d+$", name) is not None
+    """Re-evaluated in the slow run only: the seeds of a recipe (NAME-sS) beside the model the docs
+    name, and the bank's members but one of each kind (K = 0.2, with fields and measured), which
+    share their recipe and evaluation path with it."""
+    bank_member = re.fullmatch(r"miso-k-?[\d.]+(-measured)?", name) is not None
+    return re.search(r"-s\d+$", name) is not None or (bank_member and not name.startswith("miso-k0.2"))
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if _replica(n) else n for n in NAMES])
