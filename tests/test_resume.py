@@ -120,7 +120,10 @@ def test_sigkill_then_resume_continues_counters_and_logs(tmp_path):
     # resume; SIGTERM stops it after a batch, with a checkpoint of exactly what was logged
     resumed, log = _start(tmp_path / "resume-1", f"resume={run_dir}")
     try:
-        _wait(resumed, lambda: _csv(run_dir) and _csv(run_dir)[-1][0] > at_kill + BATCH, "records of the resumed run")
+        def resumed_records():
+            rows = _csv(run_dir)  # read once: the resumed run rewrites the file without the killed run's tail
+            return bool(rows) and rows[-1][0] > at_kill + BATCH
+        _wait(resumed, resumed_records, "records of the resumed run")
         resumed.send_signal(signal.SIGTERM)
         assert resumed.wait(300) == 128 + signal.SIGTERM
     finally:
