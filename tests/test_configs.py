@@ -89,3 +89,15 @@ def test_stage_protocols(stage, steps, n_starts, success_r, hold_r, repeats):
 def test_unknown_key_is_rejected_by_hydra():
     with pytest.raises(Exception, match="nosuchkey"):
         _compose(["optim.nosuchkey=1"])
+
+
+def test_long_recipe_lengthens_only_the_four_controller_stage_episodes_and_validation():
+    """experiment=miso_any_k_gru_long adds 200-step episodes and validation to the wide recipe's miso
+    stage without dropping what it inherits (K range, validation K, drift, the earlier stages' lengths)."""
+    long, wide = (_compose([f"experiment={n}"]).curriculum for n in ("miso_any_k_gru_long", "miso_any_k_gru_wide"))
+    assert long.stage_overrides.miso.max_steps == 200 and "max_steps" not in wide.stage_overrides.miso
+    assert long.config_overrides.miso.eval.steps == 200
+    assert list(long.stage_overrides.miso.K) == [-0.25, 0.45] and long.stage_overrides.miso.K_drift == 0.005
+    assert list(long.config_overrides.miso.eval.K) == list(wide.config_overrides.miso.eval.K)
+    assert long.config_overrides.miso.train == wide.config_overrides.miso.train
+    assert "siso" not in long.stage_overrides and long.total_frames == wide.total_frames
