@@ -74,16 +74,20 @@ def _as_list(x) -> list[float]:
     return [float(v) for v in x]
 
 
-def success_mask(r: torch.Tensor, success_r: float, hold_r: float | None) -> torch.Tensor:
+def success_mask(r: torch.Tensor, success_r: float, hold_r: float | None, held_steps: int | None = None) -> torch.Tensor:
     """Success per rollout from rewards r (B, steps).
 
     hold_r None: final r >= success_r (the paper's single-input protocol).
     Otherwise: r reaches success_r at some step and stays >= hold_r at every later step
-    (the four-controller bar: lock, then keep the lock for the rest of the episode).
+    (the four-controller bar: lock, then keep the lock for the rest of the episode). With
+    ``held_steps`` the lock must also come early enough to be held for at least that many of the
+    last steps, so that a policy sweeping through a lock just before the end does not count.
     """
     if hold_r is None:
         return r[:, -1] >= success_r
     reached = r >= success_r  # (B, T)
+    if held_steps:  # a lock at step index t is held for the T - t steps t ... T - 1
+        reached[:, r.shape[-1] - int(held_steps) + 1:] = False
     # broken[t]: some step after t falls below hold_r
     below = (r < hold_r).flip(-1).cumsum(-1).flip(-1)  # number of steps >= t below hold_r
     later_below = torch.cat([below[:, 1:], torch.zeros_like(below[:, :1])], -1) > 0
@@ -104,14 +108,21 @@ def _stage_base_angles(stage_cfg: Mapping[str, Any]) -> list[float]:
     return base
 
 
-def check_eval_config(eval_cfg: Mapping[str, Any]) -> None:
-    """The ``eval`` config's own values (a null takes the stage's protocol or the training env's);
+def check_eval_config(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] | None = None) -> None:
+    """The ``eval`` config's own values (a null takes the stage's ``protocol`` or the training env's);
     a bad one raises a ConfigError naming ``eval.KEY``."""
+    effective = {**dict(protocol or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
     for key in ("steps", "repeats", "max_round_trips", "min_round_trips"):
         check_number(eval_cfg.get(key), f"eval.{key}", low=1, integer=True, optional=True)
     check_number(eval_cfg.get("seed"), "eval.seed", low=0, high=2**32 - 1, integer=True, optional=True)
     for key in ("success_r", "hold_r"):
         check_number(eval_cfg.get(key), f"eval.{key}", optional=True)
+    if eval_cfg.get("held_steps") is not None:
+        check_number(eval_cfg["held_steps"], "eval.held_steps", low=1, integer=True)
+        if effective.get("hold_r") is None:
+            raise ConfigError("eval.held_steps needs eval.hold_r (a lock held to the end; the four-controller protocol)")
+        if effective.get("steps") is not None and int(eval_cfg["held_steps"]) > int(effective["steps"]):
+            raise ConfigError(f"eval.held_steps ({eval_cfg['held_steps']}) exceeds eval.steps ({effective['steps']})")
     for key in ("K", "starts_deg"):
         check_numbers(eval_cfg.get(key), f"eval.{key}", optional=True, scalar_ok=True)
     if eval_cfg.get("init_fields") is not None:
@@ -158,6 +169,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     threshold = float(eval_cfg["success_r"])
     hold_r = eval_cfg.get("hold_r")
     hold_r = None if hold_r is None else float(hold_r)
+    held_steps = None if eval_cfg.get("held_steps") is None else int(eval_cfg["held_steps"])
     Ks = _as_list(eval_cfg.get("K"))
     if not Ks:
         K_stage = stage_cfg["K"]
@@ -182,7 +194,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     r = rollout["next", "r"].squeeze(-1)  # (B, steps)
     angles = torch.rad2deg(rollout["next", "angles"][..., -4:].double())  # (B, steps, 4): the newest of a history
     ctrl = [ANGLE_NAMES.index(n) for n in stage_cfg["controlled"]]
-    success = success_mask(r, threshold, hold_r)
+    success = success_mask(r, threshold, hold_r, held_steps)
     per_start = []
     for i, (K, s, rep) in enumerate(combos):
         locked = (r[i] >= threshold).nonzero().flatten()
@@ -211,7 +223,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
                           "starts_deg": [min(starts), max(starts)]}
     result = {
         "stage": stage_cfg.get("name"), "steps": steps, "success_r": threshold, "hold_r": hold_r,
-        "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
+        "held_steps": held_steps, "repeats": repeats, "seed": int(seed), "max_round_trips": env_cfg["max_round_trips"],
         "min_round_trips": min_round_trips(env_cfg), "K": Ks, "physics_changed": mismatch,
         "physics_spread": env_cfg["physics_spread"],
         "success_rate": success_rate(success), "mean_final_reward": float(final.mean()),
@@ -349,7 +361,7 @@ def evaluate_bank(bank: list, eval_cfg: Mapping[str, Any], out_dir: str | Path, 
     members, model_K, rule = load_bank(bank, trial)
     cfg = members[0][0]["config"]
     stage_cfg = dict(stage) if stage is not None else dict(cfg["stage"])
-    check_eval_config(eval_cfg)  # before eval.seed is read
+    check_eval_config(eval_cfg, stage_cfg.get("protocol"))  # before eval.seed is read
     # the draws: eval.seed, else the first member's training seed
     seed = int(eval_cfg["seed"]) if eval_cfg.get("seed") is not None else int(cfg.get("seed", 0))
     Ks = _as_list(eval_cfg.get("K"))

@@ -56,12 +56,15 @@ def failure_modes(result: Mapping[str, Any]) -> dict:
     A failed rollout either never locked (no ``steps_to_lock``: r never reached ``success_r``) or
     locked and lost it; with a hold level (``hold_r``, the four-controller protocol) the lock counts as lost at the
     first step after the first lock where r < ``hold_r``, and ``steps_locked_before_loss`` gives
-    the median, least and most steps from the first lock to that step. ``hold_action_after_lock``
+    the median, least and most steps from the first lock to that step; with ``held_steps`` a lock
+    that is never lost but comes too late to be held that long counts as ``locked_late``
+    (also per K). ``hold_action_after_lock``
     is the fraction of steps after the first lock, over every rollout that locked, on which no
     controlled angle moved (the all-hold action). ``by_K``: the two counts per K.
     """
     hold_r = result.get("hold_r")
-    never, lost, locked_steps, by_K = 0, 0, [], {}
+    late_counted = bool(result.get("held_steps"))
+    never, lost, late, locked_steps, by_K = 0, 0, 0, [], {}
     held, moved = 0, 0
     for p in result["per_start"]:
         r = p["reward_path"]
@@ -73,20 +76,27 @@ def failure_modes(result: Mapping[str, Any]) -> dict:
             moved += len(still) - sum(still)
         if p["success"]:
             continue
-        counts = by_K.setdefault(f"{float(p['K']):g}", {"never_locked": 0, "lost": 0})
+        counts = by_K.setdefault(f"{float(p['K']):g}", {"never_locked": 0, "lost": 0,
+                                                        **({"locked_late": 0} if late_counted else {})})
         if first is None:
             never += 1
             counts["never_locked"] += 1
             continue
-        lost += 1
-        counts["lost"] += 1
+        drop = None
         if hold_r is not None:
             drop = next((t for t in range(first + 1, len(r)) if r[t] < float(hold_r)), None)
-            if drop is not None:
-                locked_steps.append(drop - first)
+        if late_counted and drop is None:  # held to the end, from too late a lock
+            late += 1
+            counts["locked_late"] += 1
+            continue
+        lost += 1
+        counts["lost"] += 1
+        if drop is not None:
+            locked_steps.append(drop - first)
     spread = ({"median": statistics.median(locked_steps), "min": min(locked_steps), "max": max(locked_steps)}
               if locked_steps else None)
-    return {"failed": never + lost, "never_locked": never, "lost": lost, "steps_locked_before_loss": spread,
+    return {"failed": never + lost + late, "never_locked": never, "lost": lost,
+            **({"locked_late": late} if late_counted else {}), "steps_locked_before_loss": spread,
             "hold_action_after_lock": held / (held + moved) if held + moved else None,
             "by_K": dict(sorted(by_K.items(), key=lambda kv: float(kv[0])))}
 
@@ -97,6 +107,8 @@ def failure_line(failures: Mapping[str, Any]) -> str:
     spread = failures.get("steps_locked_before_loss")
     if spread:
         text += f" (after {spread['median']:g} steps locked, median; {spread['min']}-{spread['max']})"
+    if failures.get("locked_late") is not None:
+        text += f", locked too late {failures['locked_late']}"
     if failures.get("hold_action_after_lock") is not None:
         text += f"; all-hold action on {100 * failures['hold_action_after_lock']:.1f} % of the steps after a lock"
     return text

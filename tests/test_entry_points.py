@@ -219,16 +219,21 @@ def test_any_k_experiment_with_a_gru_records_its_memory_and_evaluates(tmp_path):
     res = run("laserrl-train", "experiment=miso_any_k_gru", *tiny, "curriculum.stages=[miso]", "curriculum.total_frames=[64]",
               "curriculum.max_minutes=[null]", "+curriculum.stage_overrides.miso.protocol.steps=3",
               "+curriculum.stage_overrides.miso.max_steps=4", "curriculum.config_overrides.miso.train.eval_every_frames=32",
-              "curriculum.config_overrides.miso.eval.K=[0.1]", f"hydra.run.dir={tmp_path}", cwd=tmp_path)
+              "curriculum.config_overrides.miso.eval.K=[0.1]", "++curriculum.config_overrides.miso.eval.held_steps=2",
+              f"hydra.run.dir={tmp_path}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert json.loads((tmp_path / "01-miso" / "eval.json").read_text())["held_steps"] == 2  # validated by it too
     model = tmp_path / "01-miso" / "model"
     meta = json.loads((model / "model.json").read_text())
     assert (meta["observation"], meta["memory"]) == ("measured", {"history": 1, "gru_size": 8})
     res = run("laserrl-eval", f"checkpoint={model}", "eval.steps=3", "eval.K=[0.0,0.3]", "eval.repeats=2",
-              "eval.plots=false", "eval.compile=false", f"hydra.run.dir={tmp_path / 'eval'}", cwd=tmp_path)
+              "eval.held_steps=2", "eval.plots=false", "eval.compile=false", f"hydra.run.dir={tmp_path / 'eval'}",
+              cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-3000:]
     result = json.loads((tmp_path / "eval" / "eval.json").read_text())
-    assert len(result["per_start"]) == 4
+    assert len(result["per_start"]) == 4 and result["held_steps"] == 2
+    # a success locked by the second of the three steps (held for the last two)
+    assert all(p["steps_to_lock"] <= 2 for p in result["per_start"] if p["success"])
     failures = result["failures"]  # how the failed draws failed, counted and printed
     assert failures["failed"] == sum(not p["success"] for p in result["per_start"])
     assert f"never locked {failures['never_locked']}" in res.stdout

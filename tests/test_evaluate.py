@@ -159,3 +159,37 @@ def test_eval_of_a_model_with_stacked_readings_starts_where_the_protocol_says():
     out = evaluate_policy(hold_and_look, env_cfg, stage_cfg, {"steps": 2, "starts_deg": [50.0], "success_r": 0.18, "K": [-0.15]})
     assert [a[0] for a in out["per_start"][0]["angle_path_deg"]] == pytest.approx([50.0, 50.0], abs=1e-4)
     assert torch.allclose(seen["K"], torch.tensor([-0.15], dtype=torch.float64))
+
+
+def test_held_steps_rejects_a_lock_that_comes_too_late_to_be_held_that_long():
+    r = torch.tensor([
+        [0.0, 0.16, 0.12, 0.11, 0.12],   # locks at index 1: held for 4 steps
+        [0.0, 0.0, 0.0, 0.16, 0.16],     # locks at index 3: held for 2 steps (a sweep through a lock at the end)
+        [0.16, 0.05, 0.0, 0.16, 0.16],   # an early lock lost, a late one held for 2 steps
+    ])
+    assert success_mask(r, 0.15, 0.1).tolist() == [True, True, True]
+    assert success_mask(r, 0.15, 0.1, held_steps=2).tolist() == [True, True, True]
+    assert success_mask(r, 0.15, 0.1, held_steps=3).tolist() == [True, False, False]
+    assert success_mask(r, 0.15, 0.1, held_steps=5).tolist() == [False, False, False]
+    # on random paths: the same as "some lock at index t <= T - held_steps, then r >= hold_r to the end"
+    g = torch.Generator().manual_seed(0)
+    paths = 0.2 * torch.rand(300, 12, generator=g)
+    for held in (1, 4, 9):
+        expected = [any(p[t] >= 0.15 and bool((p[t + 1:] >= 0.1).all()) for t in range(12 - held + 1)) for p in paths]
+        assert success_mask(paths, 0.15, 0.1, held_steps=held).tolist() == expected
+
+
+@pytest.mark.parametrize("eval_cfg, protocol, message", [
+    ({"held_steps": 0}, {"hold_r": 0.1, "steps": 100}, "eval.held_steps"),
+    ({"held_steps": 2.5}, {"hold_r": 0.1, "steps": 100}, "eval.held_steps"),
+    ({"held_steps": 10}, {"hold_r": None, "steps": 20}, "eval.held_steps needs eval.hold_r"),
+    ({"held_steps": 150}, {"hold_r": 0.1, "steps": 100}, "exceeds eval.steps"),
+    ({"held_steps": 150, "steps": 100}, {"hold_r": 0.1, "steps": 200}, "exceeds eval.steps"),
+])
+def test_bad_held_steps_is_one_error_naming_it(eval_cfg, protocol, message):
+    from laserrl.config import ConfigError
+    from laserrl.evaluate import check_eval_config
+
+    with pytest.raises(ConfigError, match=message):
+        check_eval_config(eval_cfg, protocol)
+    check_eval_config({**eval_cfg, "held_steps": 50, "steps": 100}, {"hold_r": 0.1})  # a good one passes

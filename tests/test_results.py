@@ -46,3 +46,17 @@ def test_no_lock_anywhere_gives_no_hold_fraction():
     f = failure_modes(_result([_start(0.0, [0.01] * 3, MOVING[:3], False)]))
     assert f["hold_action_after_lock"] is None and f["never_locked"] == 1
     assert "all-hold" not in failure_line(f)
+
+
+def test_with_held_steps_a_late_lock_held_to_the_end_is_counted_apart_from_a_lost_one():
+    per_start = [
+        _start(0.1, [0.05, 0.16, 0.16, 0.16, 0.16, 0.16], STILL, True),      # early lock, held: success
+        _start(0.1, [0.05, 0.05, 0.05, 0.05, 0.16, 0.16], MOVING, False),    # locks at 4: held 2 < 3 steps
+        _start(0.2, [0.16, 0.12, 0.11, 0.09, 0.16, 0.16], MOVING, False),    # locked at 0, lost at 3
+    ]
+    f = failure_modes({**_result(per_start), "held_steps": 3})
+    assert (f["failed"], f["never_locked"], f["lost"], f["locked_late"]) == (2, 0, 1, 1)
+    assert f["steps_locked_before_loss"] == {"median": 3, "min": 3, "max": 3}
+    assert f["by_K"]["0.1"] == {"never_locked": 0, "lost": 0, "locked_late": 1}
+    assert "locked too late 1" in failure_line(f)
+    assert "locked_late" not in failure_modes(_result(per_start)) and "too late" not in failure_line(failure_modes(_result(per_start)))
