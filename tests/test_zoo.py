@@ -107,3 +107,9 @@ def test_a_reader_that_stops_early_is_not_an_error():
     proc.stdout.close()  # before the tool has imported anything, let alone printed
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0 and err == b"", err
+
+
+def test_a_model_card_states_the_held_steps_its_success_asked_for():
+    ev = {"success_r": 0.15, "hold_r": 0.1, "success_rate": 0.9, "mean_final_reward": 0.12, "steps": 100}
+    assert "last" not in zoo._eval_line(ev)
+    assert "hold r >= 0.1, locked for at least the last 20 steps" in zoo._eval_line({**ev, "held_steps": 20})

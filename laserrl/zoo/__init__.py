@@ -35,7 +35,8 @@ def _eval_line(ev: dict) -> str:
     if not ev:
         return "not evaluated"
     rule = (f"final r >= {ev.get('success_r')}" if ev.get("hold_r") is None
-            else f"reach r >= {ev.get('success_r')}, hold r >= {ev.get('hold_r')}")
+            else f"reach r >= {ev.get('success_r')}, hold r >= {ev.get('hold_r')}"
+            + (f", locked for at least the last {ev['held_steps']} steps" if ev.get("held_steps") else ""))
     runs = len(ev.get("per_start", [])) or None
     return (f"success {ev.get('success_rate'):.2f}, mean final r {ev.get('mean_final_reward'):.4f} "
             f"({ev.get('steps')} steps, {rule}, K {ev.get('K')}, repeats {ev.get('repeats')}, seed {ev.get('seed')}"
