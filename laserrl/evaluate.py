@@ -87,7 +87,7 @@ def success_mask(r: torch.Tensor, success_r: float, hold_r: float | None, held_s
         return r[:, -1] >= success_r
     reached = r >= success_r  # (B, T)
     if held_steps:  # a lock at step index t is held for the T - t steps t ... T - 1
-        reached[:, r.shape[-1] - int(held_steps) + 1:] = False
+        reached[:, max(0, r.shape[-1] - int(held_steps) + 1):] = False
     # broken[t]: some step after t falls below hold_r
     below = (r < hold_r).flip(-1).cumsum(-1).flip(-1)  # number of steps >= t below hold_r
     later_below = torch.cat([below[:, 1:], torch.zeros_like(below[:, :1])], -1) > 0

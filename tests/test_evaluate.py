@@ -171,6 +171,7 @@ def test_held_steps_rejects_a_lock_that_comes_too_late_to_be_held_that_long():
     assert success_mask(r, 0.15, 0.1, held_steps=2).tolist() == [True, True, True]
     assert success_mask(r, 0.15, 0.1, held_steps=3).tolist() == [True, False, False]
     assert success_mask(r, 0.15, 0.1, held_steps=5).tolist() == [False, False, False]
+    assert success_mask(r, 0.15, 0.1, held_steps=9).tolist() == [False, False, False]  # longer than the episode
     # on random paths: the same as "some lock at index t <= T - held_steps, then r >= hold_r to the end"
     g = torch.Generator().manual_seed(0)
     paths = 0.2 * torch.rand(300, 12, generator=g)
