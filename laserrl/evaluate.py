@@ -108,10 +108,15 @@ def _stage_base_angles(stage_cfg: Mapping[str, Any]) -> list[float]:
     return base
 
 
+def with_protocol(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] | None) -> dict:
+    """The ``eval`` config with its null values taken from the stage's ``protocol``."""
+    return {**dict(protocol or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
+
+
 def check_eval_config(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] | None = None) -> None:
     """The ``eval`` config's own values (a null takes the stage's ``protocol`` or the training env's);
     a bad one raises a ConfigError naming ``eval.KEY``."""
-    effective = {**dict(protocol or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
+    effective = with_protocol(eval_cfg, protocol)
     for key in ("steps", "repeats", "max_round_trips", "min_round_trips"):
         check_number(eval_cfg.get(key), f"eval.{key}", low=1, integer=True, optional=True)
     check_number(eval_cfg.get("seed"), "eval.seed", low=0, high=2**32 - 1, integer=True, optional=True)
@@ -144,7 +149,7 @@ def evaluate_policy(policy_for_env, env_cfg: Mapping[str, Any], stage_cfg: Mappi
     if eval_cfg.get("seed") is not None:
         seed = int(eval_cfg["seed"])
     # eval.* values left null take the stage's own protocol
-    eval_cfg = {**dict(stage_cfg.get("protocol") or {}), **{k: v for k, v in dict(eval_cfg).items() if v is not None}}
+    eval_cfg = with_protocol(eval_cfg, stage_cfg.get("protocol"))
     for key in ("steps", "success_r"):
         if eval_cfg.get(key) is None:
             raise ConfigError(f"eval.{key} is not set and stage {stage_cfg.get('name')!r} has no protocol.{key}")
