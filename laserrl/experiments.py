@@ -14,13 +14,34 @@ from omegaconf import DictConfig, OmegaConf
 from laserrl.checkpoint import CheckpointError
 from laserrl.config import ConfigError
 from laserrl.paths import CONF_DIR
-from laserrl.train import train
+from laserrl.train import check_train_config, train
 
 
 def run_curriculum(cfg: DictConfig) -> dict:
     """Train ``curriculum.stages`` in order, each warm-started from the previous stage's
     checkpoint (the Q-head grows by ``laserrl.warmstart.head_mapping``); every stage runs
-    in its own sub-directory ``NN-stage`` of the run directory."""
+    in its own sub-directory ``NN-stage`` of the run directory. Every stage's config is
+    checked before the first stage trains, so that a wrong value in a later stage does not
+    cost the earlier stages' training."""
+    stage_cfgs = curriculum_stage_configs(cfg)
+    for name, sub in stage_cfgs:
+        try:
+            check_train_config(sub)
+        except ValueError as err:  # ConfigError is one; the stage's name says which block to fix
+            kind = ConfigError if isinstance(err, ConfigError) else ValueError
+            raise kind(f"curriculum stage {name!r}: {err}") from err
+    previous = cfg.init_from
+    summary: dict = {}
+    for i, (name, sub) in enumerate(stage_cfgs):
+        print(f"curriculum stage {i + 1}/{len(stage_cfgs)}: {name} (warm start: {previous or 'none'})")
+        summary = train(OmegaConf.merge(sub, {"init_from": previous}))
+        previous = summary["model"]
+    return summary
+
+
+def curriculum_stage_configs(cfg: DictConfig) -> list[tuple[str, DictConfig]]:
+    """(stage name, the config its run trains with) for each of ``curriculum.stages``, without
+    the warm start (``init_from`` is the previous stage's model, known once it has trained)."""
     stages = list(cfg.curriculum.stages)
     per_stage = {key: list(cfg.curriculum[key]) for key in ("total_frames", "max_minutes")
                  if cfg.curriculum.get(key) is not None}
@@ -28,14 +49,13 @@ def run_curriculum(cfg: DictConfig) -> dict:
         if len(values) != len(stages):
             raise ConfigError(f"curriculum.{key} needs one entry per stage ({len(stages)}), got {len(values)}")
     known = sorted(p.stem for p in (Path(CONF_DIR) / "stage").glob("*.yaml"))
-    for name in stages:  # all checked before the first stage trains
+    for name in stages:
         if name not in known:
             raise ConfigError(f"curriculum.stages: unknown stage {name!r}; stages: {known}")
-    previous = cfg.init_from
-    summary: dict = {}
+    out = []
     for i, name in enumerate(stages):
         path = Path(CONF_DIR) / "stage" / f"{name}.yaml"
-        sub = _sub_config(cfg, "curriculum", Path(cfg.run_dir) / f"{i + 1:02d}-{name}", init_from=previous)
+        sub = _sub_config(cfg, "curriculum", Path(cfg.run_dir) / f"{i + 1:02d}-{name}", init_from=None)
         # the stage file replaces the stage (no keys of the previous stage may linger)
         sub.stage = OmegaConf.merge(OmegaConf.load(path), cfg.curriculum.get("stage_overrides", {}).get(name, {}))
         extra = cfg.curriculum.get("config_overrides", {}).get(name)
@@ -43,10 +63,8 @@ def run_curriculum(cfg: DictConfig) -> dict:
             sub = OmegaConf.merge(sub, extra)
         # per-stage budgets last; each stage evaluates with its own protocol
         sub = OmegaConf.merge(sub, {"train": {key: values[i] for key, values in per_stage.items()}})
-        print(f"curriculum stage {i + 1}/{len(stages)}: {name} (warm start: {previous or 'none'})")
-        summary = train(sub)
-        previous = summary["model"]
-    return summary
+        out.append((name, sub))
+    return out
 
 
 def _sub_config(cfg: DictConfig, drop: str, run_dir: Path, **changes) -> DictConfig:

@@ -133,6 +133,16 @@ def test_unknown_curriculum_stage_fails_before_any_training(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_bad_value_in_a_later_curriculum_stage_fails_before_any_training(tmp_path):
+    from laserrl.experiments import run_curriculum
+
+    cfg = _compose(["experiment=curriculum", f"run_dir={tmp_path}",
+                    "++curriculum.config_overrides.miso.eval.held_steps=500"])
+    with pytest.raises(ConfigError, match=r"curriculum stage 'miso': eval.held_steps"):
+        run_curriculum(cfg)
+    assert not any(tmp_path.iterdir())
+
+
 def test_the_default_configs_pass():
     check_train_config(_compose([]))
     check_train_config(_compose(["experiment=smoke"]))

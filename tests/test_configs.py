@@ -6,6 +6,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
+from laserrl.experiments import curriculum_stage_configs
 from laserrl.train import check_train_config
 from laserrl.envs.factory import make_params, make_task
 from laserrl.model import zoo_names
@@ -45,6 +46,21 @@ def test_every_group_option_composes_and_builds(group, option):
     make_params(container)  # physics values are valid CavityParams
     task = make_task(container, OmegaConf.to_container(cfg.stage, resolve=True))
     assert task.num_actions == 3 ** len(cfg.stage.controlled)
+
+
+CURRICULA = [n for n in GROUPS["experiment"] if _compose([f"experiment={n}"]).get("curriculum")]
+
+
+@pytest.mark.parametrize("name", CURRICULA)
+def test_every_curriculum_stage_config_passes_the_checks(name):
+    """Each stage of a curriculum trains with its own merged config (stage file, stage_overrides,
+    config_overrides, budgets); run_curriculum checks them all before the first stage trains."""
+    cfg = _compose([f"experiment={name}", "run_dir=unused"])
+    stages = curriculum_stage_configs(cfg)
+    assert [n for n, _ in stages] == list(cfg.curriculum.stages)
+    for stage_name, sub in stages:
+        assert sub.stage.name == stage_name and "curriculum" not in sub
+        check_train_config(sub)
 
 
 @pytest.mark.parametrize("name", [n for n in EXPERIMENTS if experiment_app(n) != "train"])
@@ -101,3 +117,14 @@ def test_long_recipe_lengthens_only_the_four_controller_stage_episodes_and_valid
     assert list(long.config_overrides.miso.eval.K) == list(wide.config_overrides.miso.eval.K)
     assert long.config_overrides.miso.train == wide.config_overrides.miso.train
     assert "siso" not in long.stage_overrides and long.total_frames == wide.total_frames
+
+
+def test_held_recipe_validates_held_locks_over_the_grid():
+    """experiment=miso_any_k_gru_held keeps the wide recipe and validates its four-controller stage
+    on the comparison's 13 grid K, asking for locks held over the last 20 of the 100 steps."""
+    held, wide = (_compose([f"experiment={n}", "run_dir=unused"]) for n in ("miso_any_k_gru_held", "miso_any_k_gru_wide"))
+    (_, miso), = [(n, c) for n, c in curriculum_stage_configs(held) if n == "miso"]
+    assert list(miso.eval.K) == pytest.approx([-0.2 + 0.05 * i for i in range(13)])
+    assert miso.eval.held_steps == 20 and miso.eval.repeats == 2 and miso.stage.protocol.steps == 100
+    assert held.curriculum.stage_overrides == wide.curriculum.stage_overrides
+    assert held.curriculum.config_overrides.miso.train == wide.curriculum.config_overrides.miso.train
