@@ -116,7 +116,6 @@ def with_protocol(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] | Non
 def check_eval_config(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] | None = None) -> None:
     """The ``eval`` config's own values (a null takes the stage's ``protocol`` or the training env's);
     a bad one raises a ConfigError naming ``eval.KEY``."""
-    effective = with_protocol(eval_cfg, protocol)
     for key in ("steps", "repeats", "max_round_trips", "min_round_trips"):
         check_number(eval_cfg.get(key), f"eval.{key}", low=1, integer=True, optional=True)
     check_number(eval_cfg.get("seed"), "eval.seed", low=0, high=2**32 - 1, integer=True, optional=True)
@@ -124,6 +123,7 @@ def check_eval_config(eval_cfg: Mapping[str, Any], protocol: Mapping[str, Any] |
         check_number(eval_cfg.get(key), f"eval.{key}", optional=True)
     if eval_cfg.get("held_steps") is not None:
         check_number(eval_cfg["held_steps"], "eval.held_steps", low=1, integer=True)
+        effective = with_protocol(eval_cfg, protocol)
         if effective.get("hold_r") is None:
             raise ConfigError("eval.held_steps needs eval.hold_r (a lock held to the end; the four-controller protocol)")
         if effective.get("steps") is not None and int(eval_cfg["held_steps"]) > int(effective["steps"]):

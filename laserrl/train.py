@@ -117,11 +117,10 @@ def check_train_config(cfg: DictConfig):
     check_collector_config(cfg.collector)
     check_logger_config(cfg)
     LoopSettings.from_config(cfg)
-    protocol = cfg.stage.get("protocol")  # the eval.* left null take the stage's protocol
-    check_eval_config(OmegaConf.to_container(cfg.eval, resolve=True),
-                      None if protocol is None else OmegaConf.to_container(protocol, resolve=True))
-    env = make_env(OmegaConf.to_container(cfg.env, resolve=True), OmegaConf.to_container(cfg.stage, resolve=True),
-                   cfg.env.num_envs, cfg.seed, cfg.device)
+    stage = OmegaConf.to_container(cfg.stage, resolve=True)
+    # the eval.* left null take the stage's protocol
+    check_eval_config(OmegaConf.to_container(cfg.eval, resolve=True), stage.get("protocol"))
+    env = make_env(OmegaConf.to_container(cfg.env, resolve=True), stage, cfg.env.num_envs, cfg.seed, cfg.device)
     build_agent(cfg, env.action_spec_unbatched)
     n_steps = make_n_step(agent_n_steps(cfg), cfg.agent.gamma)
     # rules across groups
