@@ -128,3 +128,16 @@ def test_held_recipe_validates_held_locks_over_the_grid():
     assert miso.eval.held_steps == 20 and miso.eval.repeats == 2 and miso.stage.protocol.steps == 100
     assert held.curriculum.stage_overrides == wide.curriculum.stage_overrides
     assert held.curriculum.config_overrides.miso.train == wide.curriculum.config_overrides.miso.train
+
+
+def test_move_cost_recipe_charges_moves_only_in_the_four_controller_stage():
+    """experiment=miso_any_k_gru_move_cost is the held recipe with stage.move_cost > 0 in its
+    four-controller stage; the single- and two-controller stages keep the paper's reward."""
+    cost, held = (_compose([f"experiment={n}", "run_dir=unused"]) for n in ("miso_any_k_gru_move_cost", "miso_any_k_gru_held"))
+    stages = dict(curriculum_stage_configs(cost))
+    held_stages = dict(curriculum_stage_configs(held))
+    assert stages["miso"].stage.move_cost > 0
+    assert stages["siso"].stage.move_cost == stages["duo"].stage.move_cost == 0
+    for name, sub in stages.items():
+        sub.stage.move_cost = held_stages[name].stage.move_cost
+        assert sub == held_stages[name], name
