@@ -44,6 +44,7 @@ def _compose(overrides):
     # negative steps: episode length, evaluation steps, step sizes
     ("stage.max_steps=-20", "stage.max_steps"), ("stage.max_steps=0", "stage.max_steps"),
     ("stage.move_cost=-0.01", "stage.move_cost"), ("stage.move_cost=inf", "stage.move_cost"),
+    ("stage.move_cost_from=nan", "stage.move_cost_from"),
     ("eval.steps=-1", "eval.steps"), ("eval.repeats=0", "eval.repeats"),
     ("stage.steps_deg=[0.0]", "stage.steps_deg"), ("stage.steps_deg=[-2.0]", "stage.steps_deg"),
     ("stage.steps_deg=[2.0,2.0]", "stage.steps_deg"),  # one per controlled angle

@@ -141,3 +141,16 @@ def test_move_cost_recipe_charges_moves_only_in_the_four_controller_stage():
     for name, sub in stages.items():
         sub.stage.move_cost = held_stages[name].stage.move_cost
         assert sub == held_stages[name], name
+
+
+def test_lock_cost_recipe_is_the_move_cost_recipe_charged_only_from_a_lock():
+    """experiment=miso_any_k_gru_lock_cost charges the cost recipe's move cost only for moves from
+    a state at or above the measured reward's lock level, in its four-controller stage only."""
+    lock, cost = (_compose([f"experiment={n}", "run_dir=unused"]) for n in ("miso_any_k_gru_lock_cost", "miso_any_k_gru_move_cost"))
+    stages, cost_stages = dict(curriculum_stage_configs(lock)), dict(curriculum_stage_configs(cost))
+    assert stages["miso"].stage.move_cost == cost_stages["miso"].stage.move_cost > 0
+    assert stages["miso"].stage.move_cost_from == pytest.approx(0.454)
+    assert stages["siso"].stage.move_cost_from is None and stages["duo"].stage.move_cost_from is None
+    for name, sub in stages.items():
+        sub.stage.move_cost_from = cost_stages[name].stage.move_cost_from
+        assert sub == cost_stages[name], name

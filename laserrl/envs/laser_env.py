@@ -10,9 +10,9 @@ or with ``"measured"`` what instruments read (``spectrum``, ``energy``, ``autoco
 ``laserrl.physics.instruments``), and ``angles`` (B, 4) in radians (alpha1, alpha2, alpha3,
 alpha_p), wrapped to [-pi/2, pi/2). K is the latent disturbance and is not observed.
 Diagnostics that a policy should not read are put next to the observation: ``r`` (the
-paper's r of the state, which evaluation reads), ``round_trips``. The reward is r (minus
-``move_cost`` when a plate turns), or with measured observations the readings' own
-``r_measured``.
+paper's r of the state, which evaluation reads), ``round_trips``. The reward is r, or with
+measured observations the readings' own ``r_measured``, minus ``move_cost`` when a plate turns
+(with ``move_cost_from``: only when it turns from a state whose reward signal is at least that).
 """
 from __future__ import annotations
 
@@ -126,6 +126,9 @@ class LaserTask:
     # subtracted from the reward r of a step that turns a plate (0: the paper's reward); r itself,
     # which evaluation reads, is unchanged
     move_cost: float = 0.0
+    # charge move_cost only for moves made from a state whose reward signal (r, or r_measured with measured
+    # observations) is at least this: a cost for leaving a lock, not for searching; None: every move
+    move_cost_from: float | None = None
     dtype: str = "complex64"
     compile: bool = False
     # what the agent observes: "fields" (u, v with their phase: the paper) or "measured" (the readings of
@@ -182,6 +185,8 @@ class LaserTask:
                 raise ValueError(f"{name} must be a positive integer, got {value!r}")
         if not finite_number(self.move_cost, "move_cost") >= 0:
             raise ValueError(f"move_cost must be >= 0, got {self.move_cost!r}")
+        if self.move_cost_from is not None:
+            self.move_cost_from = finite_number(self.move_cost_from, "move_cost_from")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         if self.observation not in OBSERVATIONS:
@@ -271,6 +276,7 @@ class LaserCavityEnv(EnvBase):
         self._pending: CavityState | None = None  # a saved state the next full reset continues (continue_from)
         self._start: TensorDictBase | None = None  # init_angles / init_K for the next reset (reset_at)
         self._reported: torch.Tensor | None = None  # (B, 4) angles the observation shows instead of the true ones
+        self._signal: torch.Tensor | None = None  # (B,) reward signal of the current state (move_cost_from)
         self.state = CavityState(
             u=torch.zeros(B, n, dtype=self._cdtype, device=dev), v=torch.zeros(B, n, dtype=self._cdtype, device=dev),
             angles=torch.zeros(B, 4, dtype=torch.float64, device=dev), K=torch.zeros(B, dtype=torch.float64, device=dev),
@@ -360,7 +366,11 @@ class LaserCavityEnv(EnvBase):
                             cavity=cavity, batch_size=self.batch_size, device=self.device)
         # sync-free partial reset: sample for all, keep where the mask is set
         self.state = fresh if mask is None else fresh.where(mask, self.state)
-        return self._reset_output()
+        previous = self._signal
+        out = self._reset_output()
+        if mask is not None and previous is not None:  # the others keep the signal their last step read
+            self._signal = torch.where(mask, self._signal, previous)
+        return out
 
     def _reset_output(self) -> TensorDictBase:
         r = reward_terms(self.state.u, self.state.v, self.params)[2]
@@ -368,7 +378,12 @@ class LaserCavityEnv(EnvBase):
         out.set("done", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
         out.set("terminated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
         out.set("truncated", torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device))
+        self._signal = self._signal_of(out)
         return out
+
+    def _signal_of(self, out: TensorDictBase) -> torch.Tensor:
+        """(B,) the reward signal of an observation: r, or with measured observations r_measured."""
+        return out.get("r_measured" if self._measured else "r").reshape(self.batch_size)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action").reshape(self.batch_size)
@@ -382,7 +397,11 @@ class LaserCavityEnv(EnvBase):
         # the training reward: r, or with measured observations the readings' r_measured
         reward = out.get("r_measured").squeeze(-1) if self._measured else measured.r
         if self.task.move_cost:
-            reward = reward - self.task.move_cost * (action != self._hold).to(reward.dtype)
+            charged = action != self._hold
+            if self.task.move_cost_from is not None and self._signal is not None:
+                charged = charged & (self._signal >= self.task.move_cost_from)
+            reward = reward - self.task.move_cost * charged.to(reward.dtype)
+        self._signal = self._signal_of(out)
         out.set("reward", reward.to(torch.float32).unsqueeze(-1))
         truncated = (self.state.step_count >= self.task.max_steps).unsqueeze(-1)
         out.set("truncated", truncated)

@@ -241,6 +241,44 @@ def test_move_cost_is_taken_from_the_reward_of_steps_that_turn_a_plate_and_r_is_
     torch.testing.assert_close(b["reward"], a["r"] - torch.tensor([[0.0], [0.02], [0.02]]))
 
 
+def test_move_cost_from_charges_only_moves_that_start_at_or_above_it_also_after_a_partial_reset():
+    kw = dict(batch_size=4, seed=3, controlled=ANGLE_NAMES, steps_deg=(0.5,) * 4, **FAST)
+    hold = hold_action(4)
+    actions = torch.tensor([0, 0, hold, 0])  # three move, one holds
+    reset_first = TensorDict(_reset=torch.tensor([[True], [False], [False], [False]]), batch_size=[4])
+
+    def run(env):  # three steps with a reset of cavity 0 before the third: (r_before, r_after, reward) per step
+        td = env.reset()
+        rows = []
+        for i in range(3):
+            if i == 2:  # the reset output holds only the reset cavity's entries
+                fresh = env.reset(reset_first.clone())
+                td = td.update(fresh.exclude("r")).set("r", torch.where(reset_first["_reset"], fresh["r"], td["r"]))
+            before = td["r"].clone()
+            td = step(env, td, actions)["next"]
+            rows.append((before, td["r"], td["reward"]))
+            td = td.exclude("reward", "done", "terminated", "truncated")
+        return rows
+
+    plain = run(LaserCavityEnv(**kw))
+    threshold = float(torch.cat([r for _, r, _ in plain[:2]]).median())  # some moves start above it, some below
+    costly = run(LaserCavityEnv(move_cost=0.02, move_cost_from=threshold, **kw))
+    moved = (actions != hold).unsqueeze(-1)
+    charged = 0
+    for (before, r, reward), (_, r_c, reward_c) in zip(plain, costly):
+        torch.testing.assert_close(r_c, r)
+        due = moved & (before >= threshold)
+        charged += int(due.sum())
+        torch.testing.assert_close(reward_c, r - 0.02 * due.float())
+    assert 0 < charged < 9  # the threshold splits the nine moves
+
+
+@pytest.mark.parametrize("start", [math.nan, "0.3", True])
+def test_bad_move_cost_from_is_named(start):
+    with pytest.raises(ValueError, match="move_cost_from"):
+        LaserCavityEnv(batch_size=1, move_cost=0.02, move_cost_from=start)
+
+
 @pytest.mark.parametrize("cost", [-0.1, math.inf, "0.1", True])
 def test_bad_move_cost_is_named(cost):
     with pytest.raises(ValueError, match="move_cost"):
