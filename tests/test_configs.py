@@ -130,27 +130,33 @@ def test_held_recipe_validates_held_locks_over_the_grid():
     assert held.curriculum.config_overrides.miso.train == wide.curriculum.config_overrides.miso.train
 
 
+def _recipe_stages(experiment: str) -> dict:
+    """{stage name: composed stage config} of a curriculum recipe."""
+    return dict(curriculum_stage_configs(_compose([f"experiment={experiment}", "run_dir=unused"])))
+
+
+def _assert_stages_differ_only_in(stages: dict, base: dict, key: str) -> None:
+    """Each stage config equals the base recipe's once its ``stage.<key>`` is set to the base's."""
+    assert stages.keys() == base.keys()
+    for name, sub in stages.items():
+        sub.stage[key] = base[name].stage[key]
+        assert sub == base[name], name
+
+
 def test_move_cost_recipe_charges_moves_only_in_the_four_controller_stage():
     """experiment=miso_any_k_gru_move_cost is the held recipe with stage.move_cost > 0 in its
     four-controller stage; the single- and two-controller stages keep the paper's reward."""
-    cost, held = (_compose([f"experiment={n}", "run_dir=unused"]) for n in ("miso_any_k_gru_move_cost", "miso_any_k_gru_held"))
-    stages = dict(curriculum_stage_configs(cost))
-    held_stages = dict(curriculum_stage_configs(held))
+    stages = _recipe_stages("miso_any_k_gru_move_cost")
     assert stages["miso"].stage.move_cost > 0
     assert stages["siso"].stage.move_cost == stages["duo"].stage.move_cost == 0
-    for name, sub in stages.items():
-        sub.stage.move_cost = held_stages[name].stage.move_cost
-        assert sub == held_stages[name], name
+    _assert_stages_differ_only_in(stages, _recipe_stages("miso_any_k_gru_held"), "move_cost")
 
 
 def test_lock_cost_recipe_is_the_move_cost_recipe_charged_only_from_a_lock():
     """experiment=miso_any_k_gru_lock_cost charges the cost recipe's move cost only for moves from
     a state at or above the measured reward's lock level, in its four-controller stage only."""
-    lock, cost = (_compose([f"experiment={n}", "run_dir=unused"]) for n in ("miso_any_k_gru_lock_cost", "miso_any_k_gru_move_cost"))
-    stages, cost_stages = dict(curriculum_stage_configs(lock)), dict(curriculum_stage_configs(cost))
+    stages, cost_stages = _recipe_stages("miso_any_k_gru_lock_cost"), _recipe_stages("miso_any_k_gru_move_cost")
     assert stages["miso"].stage.move_cost == cost_stages["miso"].stage.move_cost > 0
     assert stages["miso"].stage.move_cost_from == pytest.approx(0.454)
     assert stages["siso"].stage.move_cost_from is None and stages["duo"].stage.move_cost_from is None
-    for name, sub in stages.items():
-        sub.stage.move_cost_from = cost_stages[name].stage.move_cost_from
-        assert sub == cost_stages[name], name
+    _assert_stages_differ_only_in(stages, cost_stages, "move_cost_from")
