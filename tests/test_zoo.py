@@ -100,6 +100,43 @@ def test_add_copies_a_run_into_the_zoo_and_refuses_an_existing_name(tmp_path, mo
         zoo.add(run, "Bad/Name")
 
 
+def _absolute_paths(value) -> list[str]:
+    if isinstance(value, dict):
+        return [p for v in value.values() for p in _absolute_paths(v)]
+    if isinstance(value, list):
+        return [p for v in value for p in _absolute_paths(v)]
+    return [value] if isinstance(value, str) and Path(value).is_absolute() else []
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_no_zoo_model_records_a_path_of_the_machine_it_was_trained_on(name):
+    for f in ("model.json", "eval.json"):
+        assert _absolute_paths(json.loads((zoo.zoo_path(name) / f).read_text())) == [], (name, f)
+
+
+def test_add_keeps_the_recorded_paths_relative_to_the_folder_holding_the_run(tmp_path, monkeypatch):
+    import shutil
+
+    from laserrl.model import read_meta, update_model_meta
+
+    run = tmp_path / "runs" / "curriculum" / "03-miso"
+    shutil.copytree(zoo.zoo_path("siso"), run / "model")
+    config = {**read_meta(run / "model")["config"], "run_dir": str(run),
+              "init_from": str(run.parent / "02-duo" / "model"), "results": "/elsewhere/results.json"}
+    update_model_meta(run / "model", config=config)
+    (run / "eval.json").write_text(json.dumps({**json.loads((zoo.zoo_path("siso") / "eval.json").read_text()),
+                                               "checkpoint": str(run / "model")}))
+    monkeypatch.setattr("laserrl.model.ZOO_DIR", tmp_path / "zoo")
+    (tmp_path / "zoo").mkdir()
+    meta = read_meta(zoo.add(run, "test-model"))
+    assert meta["config"]["run_dir"] == "curriculum/03-miso"
+    assert meta["config"]["init_from"] == "curriculum/02-duo/model"
+    assert meta["config"]["results"] == "/elsewhere/results.json"  # not the run's: left as recorded
+    assert meta["eval"]["checkpoint"] == "curriculum/03-miso/model"
+    assert json.loads((tmp_path / "zoo" / "test-model" / "eval.json").read_text())["checkpoint"] == "curriculum/03-miso/model"
+    assert read_meta(run / "model")["config"]["run_dir"] == str(run)  # the run itself is untouched
+
+
 def test_a_reader_that_stops_early_is_not_an_error():
     """``laserrl-zoo list | grep -q NAME``: the reader closes the pipe before laserrl-zoo writes."""
     exe = Path(sys.executable).parent / "laserrl-zoo"

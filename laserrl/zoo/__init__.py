@@ -79,11 +79,27 @@ def eval_summary(result: dict) -> dict:
     return {k: v for k, v in result.items() if k != "per_start"}
 
 
+def relative_paths(value, base: Path):
+    """``value`` (JSON data) with every absolute path under ``base`` written relative to it."""
+    if isinstance(value, dict):
+        return {k: relative_paths(v, base) for k, v in value.items()}
+    if isinstance(value, list):
+        return [relative_paths(v, base) for v in value]
+    if isinstance(value, str) and Path(value).is_absolute() and Path(value).is_relative_to(base):
+        return Path(value).relative_to(base).as_posix()
+    return value
+
+
 def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_changes) -> Path:
     """Copy the model of the run ``run`` (or a model directory) into the zoo as ``name``, with
     its history.json and eval.json (the evaluation on the task's protocol); ``heldout``: the
     eval.json of an evaluation on starts or noise draws never used in training or to choose
-    the weights; ``card_changes`` update the model card. Refuses an existing name."""
+    the weights; ``card_changes`` update the model card. Refuses an existing name.
+
+    The paths the run recorded (its directory, the model it was warm-started from, the
+    checkpoint evaluated) are kept relative to the folder that holds the run, or the curriculum
+    or transfer experiment that made it (``runs/NAME/03-miso`` is kept as ``NAME/03-miso``):
+    provenance, without the maintainer's machine."""
     from laserrl.model import model_dir, update_model_meta
 
     if not _model._ZOO_NAME.match(name):
@@ -94,6 +110,7 @@ def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_ch
     source = model_dir(run)
     meta = read_meta(source)
     run_dir = _model.record_dir(source)
+    base = run_dir.resolve().parent.parent
     target.mkdir()
     try:
         for f in (WEIGHTS, META):
@@ -101,12 +118,14 @@ def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_ch
         for f in ("history.json", "eval.json"):
             if (run_dir / f).is_file():
                 shutil.copy2(run_dir / f, target / f)
-        changes = {"card": {**meta.get("card", {}), **card_changes}}
+        changes = {"config": meta.get("config", {}), "card": {**meta.get("card", {}), **card_changes}}
         if (target / "eval.json").is_file():
-            changes["eval"] = eval_summary(json.loads((target / "eval.json").read_text()))
+            evaluation = relative_paths(json.loads((target / "eval.json").read_text()), base)
+            (target / "eval.json").write_text(json.dumps(evaluation, indent=1))
+            changes["eval"] = eval_summary(evaluation)
         if heldout is not None:
             changes["heldout"] = eval_summary(json.loads(Path(heldout).read_text()))
-        update_model_meta(target, **changes)
+        update_model_meta(target, **relative_paths(changes, base))
         if size(name) > max_bytes(name):
             raise ModelError(f"zoo:{name} would take {size(name)} bytes (> {max_bytes(name)})")
     except BaseException:
