@@ -115,12 +115,11 @@ def add(run: str | Path, name: str, heldout: str | Path | None = None, **card_ch
     try:
         for f in (WEIGHTS, META):
             shutil.copy2(source / f, target / f)
-        for f in ("history.json", "eval.json"):
-            if (run_dir / f).is_file():
-                shutil.copy2(run_dir / f, target / f)
+        if (run_dir / "history.json").is_file():
+            shutil.copy2(run_dir / "history.json", target / "history.json")
         changes = {"config": meta.get("config", {}), "card": {**meta.get("card", {}), **card_changes}}
-        if (target / "eval.json").is_file():
-            evaluation = relative_paths(json.loads((target / "eval.json").read_text()), base)
+        if (run_dir / "eval.json").is_file():
+            evaluation = relative_paths(json.loads((run_dir / "eval.json").read_text()), base)
             (target / "eval.json").write_text(json.dumps(evaluation, indent=1))
             changes["eval"] = eval_summary(evaluation)
         if heldout is not None:
