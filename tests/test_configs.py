@@ -160,3 +160,12 @@ def test_lock_cost_recipe_is_the_move_cost_recipe_charged_only_from_a_lock():
     assert stages["miso"].stage.move_cost_from == pytest.approx(0.454)
     assert stages["siso"].stage.move_cost_from is None and stages["duo"].stage.move_cost_from is None
     _assert_stages_differ_only_in(stages, cost_stages, "move_cost_from")
+
+
+def test_wider_recipe_is_the_wide_recipe_over_a_wider_K_range():
+    """experiment=miso_any_k_gru_wider trains the four-controller stage over K in [-0.3, 0.5] and is
+    otherwise the wide recipe, its validation still on K of the comparison's [-0.2, 0.4]."""
+    stages, wide = _recipe_stages("miso_any_k_gru_wider"), _recipe_stages("miso_any_k_gru_wide")
+    assert list(stages["miso"].stage.K) == [-0.3, 0.5] and list(wide["miso"].stage.K) == [-0.25, 0.45]
+    assert min(stages["miso"].eval.K) == -0.2 and max(stages["miso"].eval.K) == 0.4
+    _assert_stages_differ_only_in(stages, wide, "K")
