@@ -162,6 +162,17 @@ def test_lock_cost_recipe_is_the_move_cost_recipe_charged_only_from_a_lock():
     _assert_stages_differ_only_in(stages, cost_stages, "move_cost_from")
 
 
+def test_large_lock_cost_recipe_is_the_lock_cost_recipe_with_a_larger_cost():
+    """experiment=miso_any_k_gru_lock_cost_large charges 0.05 instead of the lock cost recipe's 0.02
+    for moves from a lock, still only in its four-controller stage and only from the same level."""
+    stages, lock = _recipe_stages("miso_any_k_gru_lock_cost_large"), _recipe_stages("miso_any_k_gru_lock_cost")
+    assert stages["miso"].stage.move_cost == pytest.approx(0.05)
+    assert lock["miso"].stage.move_cost == pytest.approx(0.02)
+    assert stages["miso"].stage.move_cost_from == lock["miso"].stage.move_cost_from
+    assert stages["siso"].stage.move_cost == stages["duo"].stage.move_cost == 0
+    _assert_stages_differ_only_in(stages, lock, "move_cost")
+
+
 def test_wider_recipe_is_the_wide_recipe_over_a_wider_K_range():
     """experiment=miso_any_k_gru_wider trains the four-controller stage over K in [-0.3, 0.5] and is
     otherwise the wide recipe, its validation still on K of the comparison's [-0.2, 0.4]."""
