@@ -173,6 +173,15 @@ def test_large_lock_cost_recipe_is_the_lock_cost_recipe_with_a_larger_cost():
     _assert_stages_differ_only_in(stages, lock, "move_cost")
 
 
+def test_jumps_recipe_is_the_wide_recipe_with_more_jumps_of_K():
+    """experiment=miso_any_k_gru_wide_jumps raises the four-controller stage's probability of a jump
+    of K per step above the wide recipe's and changes nothing else."""
+    stages, wide = _recipe_stages("miso_any_k_gru_wide_jumps"), _recipe_stages("miso_any_k_gru_wide")
+    assert stages["miso"].stage.K_jump > wide["miso"].stage.K_jump > 0
+    assert stages["siso"].stage.K_jump == stages["duo"].stage.K_jump == 0
+    _assert_stages_differ_only_in(stages, wide, "K_jump")
+
+
 def test_wider_recipe_is_the_wide_recipe_over_a_wider_K_range():
     """experiment=miso_any_k_gru_wider trains the four-controller stage over K in [-0.3, 0.5] and is
     otherwise the wide recipe, its validation still on K of the comparison's [-0.2, 0.4]."""
