@@ -23,9 +23,9 @@ from omegaconf import DictConfig, OmegaConf
 from laserrl.model import load_model
 from laserrl.config import ConfigError, _number
 from laserrl.control.baselines import Genetic, GeneticParams, HillClimb, HillClimbParams, RandomSearch, RandomSearchParams
-from laserrl.control.esc import ESCParams, ExtremumSeeking
+from laserrl.control.esc import ESCParams, ExtremumSeeking, observed_r
 from laserrl.control.hybrid import DeepRL, Hybrid, HybridRule
-from laserrl.control.metrics import held_by_K0, per_cavity, summarise
+from laserrl.control.metrics import held_by_K0, locked_by_K, per_cavity, summarise
 from laserrl.control.plant import CavityPlant, Plates
 from laserrl.control.scenarios import Scenario
 from laserrl.physics.checks import CAVITY_KEYS
@@ -87,7 +87,8 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
     K (B, T) and the start angles (B, 4) deg are the same for every controller. Returns per
     controller the traces as numpy arrays: ``r`` (B, T) after each step, ``angles`` (B, T, 4)
     deg applied in each step, ``round_trips`` (B, T), ``mode`` (B, T) of a hybrid (0 deep RL,
-    1 ESC) or None.
+    1 ESC) or None, and ``r_read`` (B, T): the reward the controllers read after each step
+    (``observed_r``: the instruments' r_measured with measured observations, else ``r``).
     """
     B, T = K.shape
     n = len(controllers)
@@ -102,6 +103,7 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
     r = np.zeros((B * n, T))
     angles = np.zeros((B * n, T, 4))
     round_trips = np.zeros((B * n, T), dtype=np.int64)
+    r_read = np.zeros((B * n, T))
     mode = {name: np.zeros((B, T), dtype=np.int64) for name, c in controllers.items() if hasattr(c, "mode")}
     for t in range(T):
         plant.set_K(Kt[:, t])
@@ -113,13 +115,14 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
             mode[name][:, t] = controllers[name].mode.cpu().numpy()
         obs = plant.step(command)
         r[:, t] = plant.r.cpu().numpy()
+        r_read[:, t] = observed_r(obs)
         angles[:, t] = plant.true_angles_deg.cpu().numpy()  # where the plates are
         round_trips[:, t] = obs["round_trips"].reshape(-1).cpu().numpy()
         if progress and ((t + 1) % max(1, T // 10) == 0 or t + 1 == T):
             means = ", ".join(f"{name} {r[part[name], : t + 1].mean():.3f}" for name in controllers)
             print(f"step {t + 1}/{T}: mean r {means}", flush=True)
     return {name: {"r": r[part[name]], "angles": angles[part[name]], "round_trips": round_trips[part[name]],
-                   "mode": mode.get(name)} for name in controllers}
+                   "mode": mode.get(name), "r_read": r_read[part[name]]} for name in controllers}
 
 
 def _check(cfg: DictConfig) -> None:
@@ -140,6 +143,17 @@ def _check(cfg: DictConfig) -> None:
         names = list(cfg.controlled)
         if not _distinct_of(names, ANGLE_NAMES):
             raise ConfigError(f"controlled must name 1 to 4 distinct angles of {ANGLE_NAMES}, got {names!r}")
+
+
+def _rl_steps(value, count: int) -> list[float]:
+    """``rl_steps_deg``: the plate turn per action step of deep RL (alone and in the hybrid), a number
+    for every controlled angle or one per angle, each finite and > 0."""
+    values = [value] * count if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+    if not isinstance(values, (list, tuple)) or len(values) != count or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0 for v in values):
+        raise ConfigError(f"rl_steps_deg must be a number > 0 or a list of {count} numbers > 0 (one per controlled "
+                          f"angle), got {value!r}")
+    return [float(v) for v in values]
 
 
 def _distinct_of(names: list, allowed) -> bool:
@@ -199,6 +213,8 @@ def run_control(cfg: DictConfig) -> dict:
                               f"{rl_controlled}; leave controlled unset to use those")
         controlled = controlled or rl_controlled
         steps_deg = list(stage["steps_deg"])
+        if cfg.get("rl_steps_deg") is not None:
+            steps_deg = _rl_steps(cfg.rl_steps_deg, len(steps_deg))
     elif any(n in NEEDS_CHECKPOINT for n in names):
         raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=MODEL "
                           "(zoo:NAME or a laserrl-train run directory) or bank=[MODEL, ...]")
@@ -233,7 +249,12 @@ def run_control(cfg: DictConfig) -> dict:
         results[n] = {"summary": summarise(cav, len(scenario.jumps["times"])), "per_cavity": cav}
         if isinstance(scenario.K0, list):  # a grid of K: success per K, as laserrl-eval's
             results[n]["summary"]["held_to_end_by_K0"] = held_by_K0(cav, scenario.K0)
+        if np.ptp(K, axis=1).max() > 0:  # K moves: where the time unlocked after the first lock is lost
+            results[n]["summary"]["after_first_lock_by_K"] = locked_by_K(trace["r"], K, cav["first_lock_step"],
+                                                                         float(cfg.locked_r))
         traces[n] = {"r": _rounded(trace["r"]), "angles_deg": _rounded(trace["angles"][:, :, idx], 3)}
+        if not np.array_equal(trace["r_read"], trace["r"]):  # measured observations: what the controllers read
+            traces[n]["r_read"] = _rounded(trace["r_read"])
         if trace["mode"] is not None:
             traces[n]["mode"] = trace["mode"].tolist()
             results[n]["summary"]["frac_esc"] = float((trace["mode"] == 1).mean())
@@ -241,7 +262,7 @@ def run_control(cfg: DictConfig) -> dict:
 
     out = {
         "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
-        "num_cavities": B, "seed": seed, "controlled": controlled, "locked_r": float(cfg.locked_r),
+        "num_cavities": B, "seed": seed, "controlled": controlled, "rl_steps_deg": steps_deg, "locked_r": float(cfg.locked_r),
         "success_r": float(cfg.success_r),
         "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state and not cfg.get("bank") else None,
         **({"bank": state["bank"], "bank_rule": cfg.bank_rule} if cfg.get("bank") else {}),
@@ -329,6 +350,18 @@ def comparison_table(out: dict) -> str:
         for n, rates in by_K.items():
             lines.append(f"| {n} | " + " | ".join(f"{rates[k]:.2f}" for k in Ks) +
                          f" | {sum(v >= 0.9 for v in rates.values())} of {len(Ks)} |")
+    bands = {n: out["results"][n]["summary"].get("after_first_lock_by_K") for n in out["controllers"]}
+    if all(bands.values()):  # K moves within the run
+        lines += ["", "After the first lock, per band of K: time locked (r >= %g), %% (the band's share of the time "
+                  "unlocked, %%):" % out["locked_r"], ""]
+        edges = sorted({tuple(b["K"]) for v in bands.values() for b in v})
+        lines += ["| controller | " + " | ".join(f"K in [{lo:g}, {hi:g})" for lo, hi in edges) + " |",
+                  "|---|" + "---:|" * len(edges)]
+        for n, v in bands.items():
+            by = {tuple(b["K"]): b for b in v}
+            lines.append(f"| {n} | " + " | ".join(
+                f"{100 * by[e]['locked']:.0f} ({100 * by[e]['share_of_unlocked']:.0f})" if e in by else "-"
+                for e in edges) + " |")
     return "\n".join(lines)
 
 

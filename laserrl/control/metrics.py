@@ -13,7 +13,10 @@ With r(t) the reward after agent step t (t = 0 .. T-1) and "locked" meaning r >=
   lock survives the jump, None when the cavity does not lock again in time;
 * ``round_trips``: cavity round trips spent over the run;
 * ``held_to_end`` (with ``success_r`` given): r reaches ``success_r`` and stays >= locked_r at
-  every later step to the end: ``laserrl-eval``'s success with ``hold_r`` = locked_r.
+  every later step to the end: ``laserrl-eval``'s success with ``hold_r`` = locked_r;
+* ``after_first_lock_by_K`` (where K moves within a run): the steps from each cavity's first
+  lock pooled over the cavities and sorted into bands of K (``locked_by_K``): where the time
+  unlocked is lost.
 """
 from __future__ import annotations
 
@@ -64,6 +67,29 @@ def per_cavity(r: np.ndarray, round_trips: np.ndarray, jump_times: Sequence[int]
         "round_trips": round_trips.sum(1).astype(int).tolist(),
         **({} if success_r is None else {"held_to_end": held_to_end(r, success_r, locked_r).tolist()}),
     }
+
+
+def locked_by_K(r: np.ndarray, K: np.ndarray, first_lock_step: Sequence[int | None], locked_r: float,
+                width: float = 0.1) -> list[dict]:
+    """The steps from each cavity's first lock (``first_lock_step``, 1-based as ``per_cavity``'s) to
+    the end, pooled over cavities and sorted by the K they ran at into bands [k w, (k + 1) w):
+    per band ``K`` (its edges), ``steps``, ``locked`` (their fraction with r >= locked_r) and
+    ``share_of_unlocked`` (the band's part of all unlocked steps). Bands without steps are left out."""
+    if not width > 0:
+        raise ValueError(f"width must be > 0, got {width!r}")
+    after = np.zeros(r.shape, dtype=bool)
+    for b, f in enumerate(first_lock_step):
+        if f is not None:
+            after[b, f - 1:] = True
+    band = np.floor(np.asarray(K, dtype=np.float64) / width + 1e-9).astype(np.int64)
+    unlocked = after & (r < locked_r)
+    total_unlocked = max(int(unlocked.sum()), 1)
+    out = []
+    for k in np.unique(band[after]):
+        steps = after & (band == k)
+        out.append({"K": [round(float(k * width), 10), round(float((k + 1) * width), 10)], "steps": int(steps.sum()),
+                    "locked": float(1 - unlocked[steps].mean()), "share_of_unlocked": float(unlocked[steps].sum() / total_unlocked)})
+    return out
 
 
 def spread(values: Sequence[float | None]) -> dict:

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
@@ -94,6 +95,9 @@ def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
     (["controller=hybrid", "controller.settle_rise=-0.1"], "controller: settle_rise"),
     (["controller=all", "controller.hybrid.esc.lowpass_cutoff=0.7"], "controller.hybrid.esc: lowpass_cutoff"),
     (["controller=all", "metric_controller=best"], "metric_controller"),
+    (["controller=rl", "rl_steps_deg=0"], "rl_steps_deg"),
+    (["controller=rl", "rl_steps_deg=[1.0,2.0]"], "rl_steps_deg"),  # the checkpoint controls one angle
+    (["controller=rl", "rl_steps_deg=nan"], "rl_steps_deg"),
 ])
 def test_hostile_values_with_a_checkpoint(checkpoint, overrides, match, tmp_path):
     with pytest.raises(ConfigError, match=match):
@@ -126,13 +130,20 @@ def test_entry_point_runs_every_controller(checkpoint, tmp_path):
         assert all(len(rec) == 1 for rec in cav["recovery_steps"])
         assert all(steps <= n <= 5 * steps for n in cav["round_trips"])  # 1 to 5 round trips per step
         assert len(tr["r"][0]) == steps and len(tr["angles_deg"][0]) == steps
+        # K jumps: the steps after each cavity's first lock, sorted into bands of K
+        bands = s["after_first_lock_by_K"]
+        assert sum(b["steps"] for b in bands) == sum(steps - f + 1 for f in cav["first_lock_step"] if f is not None)
+        assert all(round(b["K"][1] - b["K"][0], 9) == 0.1 and 0 <= b["locked"] <= 1 for b in bands)
     assert set(out["traces"]["hybrid"]["mode"][0]) <= {0, 1} and "mode" not in out["traces"]["esc"]
+    assert all("r_read" not in out["traces"][n] for n in ALL)  # fields: the controllers read the paper's r itself
     # deep RL moves alpha1 in the checkpoint's 2 deg steps
     a = [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
     assert all(abs(abs(a[i + 1] - a[i]) - 2.0) < 1e-3 or abs(a[i + 1] - a[i]) < 1e-3 for i in range(steps - 1))
     assert (tmp_path / "control.png").stat().st_size > 0
     table = (tmp_path / "control.md").read_text()
     assert all(f"| {n} |" in table for n in ALL)
+    locked_somewhere = all(out["results"][n]["summary"]["after_first_lock_by_K"] for n in ALL)
+    assert ("per band of K" in table) == locked_somewhere
 
 
 def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
@@ -156,6 +167,9 @@ def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
         first = out["traces"][name]["angles_deg"][0][0][0]  # alpha1 after the first step, true angle
         assert starts[0][0] == 60.0 and abs(first - 60.0) < 15, (name, first)  # the scenario's start, not the training's
     assert all(0.0 <= out["results"][n]["summary"]["frac_locked"]["mean"] <= 1.0 for n in ALL)
+    for name in ALL:  # what the controllers read: the instruments' reward, on its own scale, one per step
+        read, r = np.array(out["traces"][name]["r_read"]), np.array(out["traces"][name]["r"])
+        assert read.shape == r.shape == (2, 4) and np.isfinite(read).all() and not np.allclose(read, r)
 
 
 def _always(checkpoint, out, K, sign):
@@ -195,6 +209,16 @@ def test_a_bank_acts_with_the_member_its_rule_picks(checkpoint, tmp_path, rule):
             assert moves == [1, 1, -1, -1, 1, 1], moves
 
 
+def test_rl_steps_deg_sets_the_plate_turn_of_one_step_of_deep_RL(checkpoint, tmp_path):
+    up = _always(checkpoint, tmp_path / "up", 0.0, +1)  # trained with 2 deg steps, always one step up
+    for step in (None, 0.5):
+        out = _run(["controller=rl", f"checkpoint={up}", "scenario.steps=3", "progress=false",
+                    *([] if step is None else [f"rl_steps_deg={step}"])], tmp_path / str(step))
+        assert out["rl_steps_deg"] == [2.0 if step is None else step]
+        a = [out["init_angles_deg"][0][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
+        assert [a[t + 1] - a[t] for t in range(3)] == pytest.approx([out["rl_steps_deg"][0]] * 3)
+
+
 def test_a_bank_refuses_a_checkpoint_beside_it_and_unknown_rules(checkpoint, tmp_path):
     with pytest.raises(ConfigError, match="not both"):
         _run(["controller=rl", f"checkpoint={checkpoint}", f"bank=[{checkpoint}]"], tmp_path)
@@ -229,7 +253,6 @@ def test_hostile_value_on_the_command_line_is_one_line(tmp_path):
 def test_the_fixed_K_grid_runs_the_K_blind_agent_as_laserrl_eval_scores_it(tmp_path):
     """experiment=any_k_grid_hybrid: 10 cavities at each of laserrl-eval's 19 K values; a cavity
     succeeds as in laserrl-eval (held_to_end), and control.md gives the success per K."""
-    import numpy as np
 
     from laserrl.control.metrics import held_to_end
 
