@@ -270,3 +270,18 @@ def test_the_fixed_K_grid_runs_the_K_blind_agent_as_laserrl_eval_scores_it(tmp_p
         assert summary["held_to_end_by_K0"] == {"0": held[[0, 2]].mean(), "0.3": held[[1, 3]].mean()}
     table = (tmp_path / "control.md").read_text()
     assert "per K0" in table and "| hybrid | " in table.split("per K0")[1]
+
+
+@pytest.mark.parametrize("name, base", [("any_k_hybrid", "measured_hybrid"), ("any_k_grid_hybrid_coarse", "any_k_grid_hybrid")])
+def test_the_coarse_search_hybrids_change_only_the_model_and_the_hybrids_three_settings(name, base):
+    """experiment=any_k_hybrid and any_k_grid_hybrid_coarse (docs/measured.md): their base experiment with
+    zoo:miso-any-k-gru-wide, deep RL in 1 deg steps, settle_steps=3 and lock_steps=5, and nothing else changed
+    (the drift run also runs the agent alone beside the hybrid, compiled)."""
+    settings = ["checkpoint=zoo:miso-any-k-gru-wide", "rl_steps_deg=1.0", "controller.hybrid.settle_steps=3",
+                "controller.hybrid.lock_steps=5"]
+    if name == "any_k_hybrid":
+        settings += ["controller.only=[hybrid,rl]", "compile=true"]
+    got = OmegaConf.to_container(_compose([f"experiment={name}", "run_dir=x"]), resolve=True)
+    want = OmegaConf.to_container(_compose([f"experiment={base}", "run_dir=x", *settings]), resolve=True)
+    assert got == want
+    assert want != OmegaConf.to_container(_compose([f"experiment={base}", "run_dir=x"]), resolve=True)
