@@ -49,8 +49,10 @@ def _params(cls, cfg: Mapping[str, Any], where: str):
 
 
 def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavities: int, seed: int, rl_policy=None,
-                     rl_steps_deg=None, where: str = "controller"):
-    """The controller ``name`` from its config; ``rl_policy`` (greedy TensorDict policy) for rl/hybrid."""
+                     rl_steps_deg=None, where: str = "controller", rl_fine=None):
+    """The controller ``name`` from its config; ``rl_policy`` (greedy TensorDict policy) for rl/hybrid,
+    whose plates turn by ``rl_steps_deg`` per step, or with ``rl_fine`` = (steps, r) by those steps where
+    the reward read is >= r (``DeepRL``)."""
     if name in NEEDS_CHECKPOINT and rl_policy is None:
         raise ConfigError(f"controller {name} needs a DQN: give checkpoint=MODEL (zoo:NAME or a laserrl-train run directory)")
     try:
@@ -63,7 +65,7 @@ def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavitie
         if name == "ga":
             return Genetic(_params(GeneticParams, ccfg, where), controlled, num_cavities, seed)
         if name == "rl":
-            return DeepRL(rl_policy, controlled, rl_steps_deg)
+            return DeepRL(rl_policy, controlled, rl_steps_deg, *(rl_fine or (None, None)))
         if name == "hybrid":
             rule = _params(HybridRule, {k: v for k, v in ccfg.items() if k != "esc"}, where)
             esc = _params(ESCParams, ccfg["esc"], f"{where}.esc")
@@ -71,7 +73,8 @@ def build_controller(name: str, ccfg: Mapping[str, Any], controlled, num_cavitie
                 esc.resolve(controlled)
             except ValueError as err:
                 raise ConfigError(f"{where}.esc: {err}") from None
-            return Hybrid(DeepRL(rl_policy, controlled, rl_steps_deg), esc, rule, controlled, num_cavities)
+            return Hybrid(DeepRL(rl_policy, controlled, rl_steps_deg, *(rl_fine or (None, None))), esc, rule, controlled,
+                          num_cavities)
     except ValueError as err:
         if isinstance(err, ConfigError):
             raise
@@ -192,7 +195,7 @@ def run_control(cfg: DictConfig) -> dict:
     configs = {n: ccfg[n] for n in names} if ccfg.get("name") == "all" else {names[0]: ccfg}
     where = {n: (f"controller.{n}" if ccfg.get("name") == "all" else "controller") for n in names}
 
-    state, policy_for, steps_deg = None, None, None
+    state, policy_for, steps_deg, rl_fine = None, None, None, None
     env_cfg = dict(container["env"])
     controlled = container["controlled"]
     if cfg.checkpoint and cfg.get("bank"):
@@ -213,6 +216,12 @@ def run_control(cfg: DictConfig) -> dict:
                               f"{rl_controlled}; leave controlled unset to use those")
         controlled = controlled or rl_controlled
         steps_deg = list(stage["steps_deg"])
+        if cfg.get("rl_fine_from_r") is not None:
+            _number(cfg, "rl_fine_from_r", low=0)
+            if cfg.get("rl_steps_deg") is None:
+                raise ConfigError("rl_fine_from_r turns the plates by the checkpoint's own steps near a lock and by "
+                                  "rl_steps_deg elsewhere: give rl_steps_deg too")
+            rl_fine = (list(steps_deg), float(cfg.rl_fine_from_r))
         if cfg.get("rl_steps_deg") is not None:
             steps_deg = _rl_steps(cfg.rl_steps_deg, len(steps_deg))
     elif any(n in NEEDS_CHECKPOINT for n in names):
@@ -235,7 +244,7 @@ def run_control(cfg: DictConfig) -> dict:
     # a policy of its own for each controller: a bank's trial rule keeps per-cavity state
     controllers = {n: build_controller(n, configs[n], controlled, B, seed,
                                        policy_for(plant) if policy_for and n in NEEDS_CHECKPOINT else None,
-                                       steps_deg, where[n]) for n in names}
+                                       steps_deg, where[n], rl_fine) for n in names}
 
     t0 = time.perf_counter()
     traces_np = run_controllers(controllers, plant, K, init_angles, progress=bool(cfg.progress))
@@ -262,7 +271,8 @@ def run_control(cfg: DictConfig) -> dict:
 
     out = {
         "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
-        "num_cavities": B, "seed": seed, "controlled": controlled, "rl_steps_deg": steps_deg, "locked_r": float(cfg.locked_r),
+        "num_cavities": B, "seed": seed, "controlled": controlled, "rl_steps_deg": steps_deg,
+        "rl_fine": None if rl_fine is None else {"steps_deg": rl_fine[0], "from_r": rl_fine[1]}, "locked_r": float(cfg.locked_r),
         "success_r": float(cfg.success_r),
         "hold_steps": int(cfg.hold_steps), "checkpoint": state["path"] if state and not cfg.get("bank") else None,
         **({"bank": state["bank"], "bank_rule": cfg.bank_rule} if cfg.get("bank") else {}),

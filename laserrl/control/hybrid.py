@@ -42,16 +42,28 @@ class DeepRL:
 
     A recurrent policy (one that reads ``recurrent_state``, ``env.gru_size``) keeps its state
     here from one call to the next, from zero at ``reset`` and, per cavity, at ``restart(mask)``;
-    it reads every step's observation, also while the hybrid's ESC moves the plates."""
+    it reads every step's observation, also while the hybrid's ESC moves the plates.
+
+    With ``fine_steps_deg`` and ``fine_from_r``, the angles move by ``fine_steps_deg`` instead on the
+    cavities whose reward read (``observed_r``) is >= ``fine_from_r``: coarse steps to search, fine
+    ones near a lock."""
 
     name = "rl"
 
-    def __init__(self, policy: Callable[[TensorDictBase], TensorDictBase], controlled, steps_deg):
-        if len(steps_deg) != len(controlled):
-            raise ValueError(f"steps_deg needs one step per controlled angle {list(controlled)}, got {list(steps_deg)}")
+    def __init__(self, policy: Callable[[TensorDictBase], TensorDictBase], controlled, steps_deg,
+                 fine_steps_deg=None, fine_from_r: float | None = None):
+        for name, steps in (("steps_deg", steps_deg), ("fine_steps_deg", fine_steps_deg)):
+            if steps is not None and len(steps) != len(controlled):
+                raise ValueError(f"{name} needs one step per controlled angle {list(controlled)}, got {list(steps)}")
+        if (fine_steps_deg is None) != (fine_from_r is None):
+            raise ValueError("fine_steps_deg and fine_from_r go together (finer steps near a lock)")
         self.policy = policy
         self.idx = [ANGLE_NAMES.index(a) for a in controlled]
         self.steps = torch.tensor([float(s) for s in steps_deg], dtype=torch.float64)
+        # near a lock (the reward read >= fine_from_r) the plates turn by fine_steps_deg instead
+        self.fine_steps = None if fine_steps_deg is None else torch.tensor([float(s) for s in fine_steps_deg],
+                                                                           dtype=torch.float64)
+        self.fine_from_r = fine_from_r
 
         self._memory = None  # a recurrent policy's state after the last step (None: start afresh)
 
@@ -79,7 +91,12 @@ class DeepRL:
                 self._memory = out["next", "recurrent_state"]
             action = out["action"]
         command = angles_deg.clone().to(torch.float64)
-        command[:, self.idx] += action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
+        deltas = action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
+        if self.fine_steps is not None:
+            near = torch.from_numpy(observed_r(obs) >= self.fine_from_r).to(command.device)[:, None]
+            fine = action_to_deltas(action.reshape(-1), self.fine_steps.to(action.device)).to(command)
+            deltas = torch.where(near, fine, deltas)
+        command[:, self.idx] += deltas
         return command
 
 

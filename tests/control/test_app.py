@@ -98,6 +98,8 @@ def test_hostile_values_fail_before_simulating(overrides, match, tmp_path):
     (["controller=rl", "rl_steps_deg=0"], "rl_steps_deg"),
     (["controller=rl", "rl_steps_deg=[1.0,2.0]"], "rl_steps_deg"),  # the checkpoint controls one angle
     (["controller=rl", "rl_steps_deg=nan"], "rl_steps_deg"),
+    (["controller=rl", "rl_fine_from_r=0.4"], "give rl_steps_deg too"),
+    (["controller=rl", "rl_steps_deg=1.0", "rl_fine_from_r=-1"], "rl_fine_from_r"),
 ])
 def test_hostile_values_with_a_checkpoint(checkpoint, overrides, match, tmp_path):
     with pytest.raises(ConfigError, match=match):
@@ -217,6 +219,13 @@ def test_rl_steps_deg_sets_the_plate_turn_of_one_step_of_deep_RL(checkpoint, tmp
         assert out["rl_steps_deg"] == [2.0 if step is None else step]
         a = [out["init_angles_deg"][0][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
         assert [a[t + 1] - a[t] for t in range(3)] == pytest.approx([out["rl_steps_deg"][0]] * 3)
+    # rl_fine_from_r: the checkpoint's own 2 deg where the reward read is >= the level (r >= 0: every step)
+    for level, step in ((0.0, 2.0), (1e9, 0.5)):
+        out = _run(["controller=rl", f"checkpoint={up}", "scenario.steps=3", "progress=false", "rl_steps_deg=0.5",
+                    f"rl_fine_from_r={level}"], tmp_path / f"fine{level}")
+        assert out["rl_fine"] == {"steps_deg": [2.0], "from_r": level}
+        a = [out["init_angles_deg"][0][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
+        assert [a[t + 1] - a[t] for t in range(3)] == pytest.approx([step] * 3)
 
 
 def test_a_bank_refuses_a_checkpoint_beside_it_and_unknown_rules(checkpoint, tmp_path):
@@ -275,10 +284,11 @@ def test_the_fixed_K_grid_runs_the_K_blind_agent_as_laserrl_eval_scores_it(tmp_p
 @pytest.mark.parametrize("name, base", [("any_k_hybrid", "measured_hybrid"), ("any_k_grid_hybrid_coarse", "any_k_grid_hybrid")])
 def test_the_coarse_search_hybrids_change_only_the_model_and_the_hybrids_three_settings(name, base):
     """experiment=any_k_hybrid and any_k_grid_hybrid_coarse (docs/measured.md): their base experiment with
-    zoo:miso-any-k-gru-wide, deep RL in 1 deg steps, settle_steps=3 and lock_steps=5, and nothing else changed
+    zoo:miso-any-k-gru-wide, deep RL in 1 deg steps (its own 0.5 deg at the hybrid's lock level), settle_steps=3
+    and lock_steps=5, and nothing else changed
     (the drift run also runs the agent alone beside the hybrid, compiled)."""
-    settings = ["checkpoint=zoo:miso-any-k-gru-wide", "rl_steps_deg=1.0", "controller.hybrid.settle_steps=3",
-                "controller.hybrid.lock_steps=5"]
+    settings = ["checkpoint=zoo:miso-any-k-gru-wide", "rl_steps_deg=1.0", "rl_fine_from_r=0.454",
+                "controller.hybrid.settle_steps=3", "controller.hybrid.lock_steps=5"]
     if name == "any_k_hybrid":
         settings += ["controller.only=[hybrid,rl]", "compile=true"]
     got = OmegaConf.to_container(_compose([f"experiment={name}", "run_dir=x"]), resolve=True)

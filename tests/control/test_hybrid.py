@@ -102,6 +102,17 @@ def test_deep_rl_controller_moves_angles_as_the_env_actions_do():
     assert torch.equal(command[:, [0, 2]], deltas) and torch.equal(command[:, [1, 3]], angles[:, [1, 3]])
 
 
+def test_deep_rl_turns_by_the_fine_steps_where_the_reward_read_reaches_the_level():
+    rl = DeepRL(AlwaysIncrease(), ["alpha1"], [1.0], fine_steps_deg=[0.5], fine_from_r=0.15)
+    angles = torch.zeros(3, 4, dtype=torch.float64)
+    command = rl.act(_obs([0.1, 0.15, 0.2]), angles)  # searching, at the level, above it
+    assert command[:, 0].tolist() == [1.0, 0.5, 0.5] and torch.equal(command[:, 1:], angles[:, 1:])
+    with pytest.raises(ValueError, match="go together"):
+        DeepRL(AlwaysIncrease(), ["alpha1"], [1.0], fine_steps_deg=[0.5])
+    with pytest.raises(ValueError, match="fine_steps_deg needs one step per controlled angle"):
+        DeepRL(AlwaysIncrease(), ["alpha1"], [1.0], fine_steps_deg=[0.5, 0.5], fine_from_r=0.15)
+
+
 class Counter:
     """Scripted recurrent policy: its state counts the steps since is_init; action = the count mod 3."""
 
