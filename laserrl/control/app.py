@@ -90,8 +90,8 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
     K (B, T) and the start angles (B, 4) deg are the same for every controller. Returns per
     controller the traces as numpy arrays: ``r`` (B, T) after each step, ``angles`` (B, T, 4)
     deg applied in each step, ``round_trips`` (B, T), ``mode`` (B, T) of a hybrid (0 deep RL,
-    1 ESC) or None, and ``r_read`` (B, T): the reward the controllers read after each step
-    (``observed_r``: the instruments' r_measured with measured observations, else ``r``).
+    1 ESC) or None, and ``r_read`` (B, T): with measured observations, the instruments' reward
+    r_measured the controllers read after each step (``observed_r``), else None (they read ``r``).
     """
     B, T = K.shape
     n = len(controllers)
@@ -106,7 +106,7 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
     r = np.zeros((B * n, T))
     angles = np.zeros((B * n, T, 4))
     round_trips = np.zeros((B * n, T), dtype=np.int64)
-    r_read = np.zeros((B * n, T))
+    r_read = np.zeros((B * n, T)) if "r_measured" in obs.keys() else None
     mode = {name: np.zeros((B, T), dtype=np.int64) for name, c in controllers.items() if hasattr(c, "mode")}
     for t in range(T):
         plant.set_K(Kt[:, t])
@@ -118,14 +118,16 @@ def run_controllers(controllers: Mapping[str, Any], plant: CavityPlant, K: np.nd
             mode[name][:, t] = controllers[name].mode.cpu().numpy()
         obs = plant.step(command)
         r[:, t] = plant.r.cpu().numpy()
-        r_read[:, t] = observed_r(obs)
+        if r_read is not None:
+            r_read[:, t] = observed_r(obs)
         angles[:, t] = plant.true_angles_deg.cpu().numpy()  # where the plates are
         round_trips[:, t] = obs["round_trips"].reshape(-1).cpu().numpy()
         if progress and ((t + 1) % max(1, T // 10) == 0 or t + 1 == T):
             means = ", ".join(f"{name} {r[part[name], : t + 1].mean():.3f}" for name in controllers)
             print(f"step {t + 1}/{T}: mean r {means}", flush=True)
     return {name: {"r": r[part[name]], "angles": angles[part[name]], "round_trips": round_trips[part[name]],
-                   "mode": mode.get(name), "r_read": r_read[part[name]]} for name in controllers}
+                   "mode": mode.get(name), "r_read": None if r_read is None else r_read[part[name]]}
+            for name in controllers}
 
 
 def _check(cfg: DictConfig) -> None:
@@ -136,6 +138,11 @@ def _check(cfg: DictConfig) -> None:
     _number(cfg, "hold_steps", low=1, integer=True)
     if cfg.threads is not None:
         _number(cfg, "threads", low=1, integer=True)
+    if cfg.get("rl_fine_from_r") is not None:
+        _number(cfg, "rl_fine_from_r", low=0)
+        if cfg.get("rl_steps_deg") is None:
+            raise ConfigError("rl_fine_from_r turns the plates by the checkpoint's own steps near a lock and by "
+                              "rl_steps_deg elsewhere: give rl_steps_deg too")
     if cfg.metric not in METRICS:
         raise ConfigError(f"metric must be one of {list(METRICS)}, got {cfg.metric!r}")
     if cfg.controller.get("name") == "all":
@@ -217,10 +224,6 @@ def run_control(cfg: DictConfig) -> dict:
         controlled = controlled or rl_controlled
         steps_deg = list(stage["steps_deg"])
         if cfg.get("rl_fine_from_r") is not None:
-            _number(cfg, "rl_fine_from_r", low=0)
-            if cfg.get("rl_steps_deg") is None:
-                raise ConfigError("rl_fine_from_r turns the plates by the checkpoint's own steps near a lock and by "
-                                  "rl_steps_deg elsewhere: give rl_steps_deg too")
             rl_fine = (list(steps_deg), float(cfg.rl_fine_from_r))
         if cfg.get("rl_steps_deg") is not None:
             steps_deg = _rl_steps(cfg.rl_steps_deg, len(steps_deg))
@@ -262,7 +265,7 @@ def run_control(cfg: DictConfig) -> dict:
             results[n]["summary"]["after_first_lock_by_K"] = locked_by_K(trace["r"], K, cav["first_lock_step"],
                                                                          float(cfg.locked_r))
         traces[n] = {"r": _rounded(trace["r"]), "angles_deg": _rounded(trace["angles"][:, :, idx], 3)}
-        if not np.array_equal(trace["r_read"], trace["r"]):  # measured observations: what the controllers read
+        if trace["r_read"] is not None:  # measured observations: what the controllers read
             traces[n]["r_read"] = _rounded(trace["r_read"])
         if trace["mode"] is not None:
             traces[n]["mode"] = trace["mode"].tolist()

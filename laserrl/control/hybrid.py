@@ -91,12 +91,11 @@ class DeepRL:
                 self._memory = out["next", "recurrent_state"]
             action = out["action"]
         command = angles_deg.clone().to(torch.float64)
-        deltas = action_to_deltas(action.reshape(-1), self.steps.to(action.device)).to(command)
-        if self.fine_steps is not None:
-            near = torch.from_numpy(observed_r(obs) >= self.fine_from_r).to(command.device)[:, None]
-            fine = action_to_deltas(action.reshape(-1), self.fine_steps.to(action.device)).to(command)
-            deltas = torch.where(near, fine, deltas)
-        command[:, self.idx] += deltas
+        steps = self.steps.to(action.device)
+        if self.fine_steps is not None:  # per cavity: the fine steps where the reward read reaches fine_from_r
+            near = torch.from_numpy(observed_r(obs) >= self.fine_from_r).to(action.device)[:, None]
+            steps = torch.where(near, self.fine_steps.to(action.device), steps)
+        command[:, self.idx] += action_to_deltas(action.reshape(-1), steps).to(command)
         return command
 
 
