@@ -135,11 +135,12 @@ def _recipe_stages(experiment: str) -> dict:
     return dict(curriculum_stage_configs(_compose([f"experiment={experiment}", "run_dir=unused"])))
 
 
-def _assert_stages_differ_only_in(stages: dict, base: dict, key: str) -> None:
-    """Each stage config equals the base recipe's once its ``stage.<key>`` is set to the base's."""
+def _assert_stages_differ_only_in(stages: dict, base: dict, *keys: str) -> None:
+    """Each stage config equals the base recipe's once its ``stage.<key>`` are set to the base's."""
     assert stages.keys() == base.keys()
     for name, sub in stages.items():
-        sub.stage[key] = base[name].stage[key]
+        for key in keys:
+            sub.stage[key] = base[name].stage[key]
         assert sub == base[name], name
 
 
@@ -180,6 +181,17 @@ def test_jumps_recipe_is_the_wide_recipe_with_more_jumps_of_K():
     assert stages["miso"].stage.K_jump > wide["miso"].stage.K_jump > 0
     assert stages["siso"].stage.K_jump == stages["duo"].stage.K_jump == 0
     _assert_stages_differ_only_in(stages, wide, "K_jump")
+
+
+def test_coarse_recipe_is_the_wide_recipe_searching_in_coarser_steps_below_the_lock_level():
+    """experiment=miso_any_k_gru_wide_coarse turns the four-controller stage's plates by 1 deg from
+    states below the measured lock level and by the wide recipe's 0.5 deg from it on; nothing else."""
+    stages, wide = _recipe_stages("miso_any_k_gru_wide_coarse"), _recipe_stages("miso_any_k_gru_wide")
+    assert list(stages["miso"].stage.steps_deg) == [1.0] * 4
+    assert list(stages["miso"].stage.fine_steps_deg) == list(wide["miso"].stage.steps_deg) == [0.5] * 4
+    assert stages["miso"].stage.fine_from == pytest.approx(0.454)
+    assert all(stages[n].stage.fine_from is None for n in ("siso", "duo"))
+    _assert_stages_differ_only_in(stages, wide, "steps_deg", "fine_steps_deg", "fine_from")
 
 
 def test_wider_recipe_is_the_wide_recipe_over_a_wider_K_range():

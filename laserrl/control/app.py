@@ -140,9 +140,6 @@ def _check(cfg: DictConfig) -> None:
         _number(cfg, "threads", low=1, integer=True)
     if cfg.get("rl_fine_from_r") is not None:
         _number(cfg, "rl_fine_from_r", low=0)
-        if cfg.get("rl_steps_deg") is None:
-            raise ConfigError("rl_fine_from_r turns the plates by the checkpoint's own steps near a lock and by "
-                              "rl_steps_deg elsewhere: give rl_steps_deg too")
     if cfg.metric not in METRICS:
         raise ConfigError(f"metric must be one of {list(METRICS)}, got {cfg.metric!r}")
     if cfg.controller.get("name") == "all":
@@ -164,6 +161,23 @@ def _rl_steps(value, count: int) -> list[float]:
         raise ConfigError(f"rl_steps_deg must be a number > 0 or a list of {count} numbers > 0 (one per controlled "
                           f"angle), got {value!r}")
     return [float(v) for v in values]
+
+
+def _rl_step_rule(cfg: DictConfig, stage: Mapping[str, Any]) -> tuple[list[float], tuple[list[float], float] | None]:
+    """Deep RL's plate turns: (steps, fine) with fine = (fine steps, reward level) or None. By default the
+    checkpoint's own: its stage's ``steps_deg``, and where it was trained with finer steps near a lock, its
+    ``fine_steps_deg`` from ``fine_from``. ``rl_steps_deg`` replaces the steps; ``rl_fine_from_r`` turns by
+    the checkpoint's fine steps (its ``fine_steps_deg``, or else its ``steps_deg``) from that level on."""
+    own = [float(s) for s in stage["steps_deg"]]
+    own_fine = None if stage.get("fine_from") is None else ([float(s) for s in stage["fine_steps_deg"]],
+                                                            float(stage["fine_from"]))
+    steps = own if cfg.get("rl_steps_deg") is None else _rl_steps(cfg.rl_steps_deg, len(own))
+    if cfg.get("rl_fine_from_r") is None:
+        return steps, own_fine
+    if own_fine is None and cfg.get("rl_steps_deg") is None:
+        raise ConfigError("rl_fine_from_r turns the plates by the checkpoint's own steps near a lock and by "
+                          "rl_steps_deg elsewhere: give rl_steps_deg too")
+    return steps, (own if own_fine is None else own_fine[0], float(cfg.rl_fine_from_r))
 
 
 def _distinct_of(names: list, allowed) -> bool:
@@ -222,11 +236,7 @@ def run_control(cfg: DictConfig) -> dict:
             raise ConfigError(f"controlled={list(controlled)} differs from the angles the checkpoint's DQN controls "
                               f"{rl_controlled}; leave controlled unset to use those")
         controlled = controlled or rl_controlled
-        steps_deg = list(stage["steps_deg"])
-        if cfg.get("rl_fine_from_r") is not None:
-            rl_fine = (list(steps_deg), float(cfg.rl_fine_from_r))
-        if cfg.get("rl_steps_deg") is not None:
-            steps_deg = _rl_steps(cfg.rl_steps_deg, len(steps_deg))
+        steps_deg, rl_fine = _rl_step_rule(cfg, stage)
     elif any(n in NEEDS_CHECKPOINT for n in names):
         raise ConfigError(f"controller {'all' if len(names) > 1 else names[0]} needs a DQN: give checkpoint=MODEL "
                           "(zoo:NAME or a laserrl-train run directory) or bank=[MODEL, ...]")

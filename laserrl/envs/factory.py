@@ -15,7 +15,7 @@ from laserrl.physics import CavityParams
 
 TASK_KEYS = ("controlled", "steps_deg", "init_angles_deg", "K", "K_drift", "K_jump", "init_fields", "sech_amplitude",
              "sech_width", "noise_scale", "max_steps", "move_cost",
-             "move_cost_from")
+             "move_cost_from", "fine_steps_deg", "fine_from")
 ENV_TASK_KEYS = ("max_round_trips", "min_round_trips", "tol", "dtype", "compile", "observation",
                  "instruments", "physics_spread")  # LaserTask fields set from the env group
 #: (center, scale) of the training reward (r - center) / scale when env.reward_center / reward_scale are null:

@@ -129,6 +129,11 @@ class LaserTask:
     # charge move_cost only for moves made from a state whose reward signal (r, or r_measured with measured
     # observations) is at least this: a cost for leaving a lock, not for searching; None: every move
     move_cost_from: float | None = None
+    # finer turns near a lock: a turn from a state whose reward signal (as for move_cost_from) is at least
+    # fine_from moves the plates by fine_steps_deg (one per controlled angle) instead of steps_deg, so that
+    # steps_deg can be coarse for the search; None: steps_deg everywhere
+    fine_steps_deg: Sequence[float] | None = None
+    fine_from: float | None = None
     dtype: str = "complex64"
     compile: bool = False
     # what the agent observes: "fields" (u, v with their phase: the paper) or "measured" (the readings of
@@ -187,6 +192,15 @@ class LaserTask:
             raise ValueError(f"move_cost must be >= 0, got {self.move_cost!r}")
         if self.move_cost_from is not None:
             self.move_cost_from = finite_number(self.move_cost_from, "move_cost_from")
+        if (self.fine_steps_deg is None) != (self.fine_from is None):
+            raise ValueError(f"fine_steps_deg and fine_from go together (finer steps from a reward signal on), got "
+                             f"fine_steps_deg={self.fine_steps_deg!r}, fine_from={self.fine_from!r}")
+        if self.fine_steps_deg is not None:
+            self.fine_steps_deg = tuple(finite_number(s, "fine_steps_deg") for s in _sequence(self.fine_steps_deg, "fine_steps_deg"))
+            if len(self.fine_steps_deg) != len(self.controlled) or not all(s > 0 for s in self.fine_steps_deg):
+                raise ValueError(f"fine_steps_deg needs one positive step per controlled angle ({len(self.controlled)}), "
+                                 f"got {self.fine_steps_deg!r}")
+            self.fine_from = finite_number(self.fine_from, "fine_from")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
         if self.observation not in OBSERVATIONS:
@@ -261,6 +275,8 @@ class LaserCavityEnv(EnvBase):
         self._ctrl_idx = torch.tensor(t.controlled_index, device=dev)
         self._hold = hold_action(len(t.controlled))
         self._steps = torch.tensor([math.radians(s) for s in t.steps_deg], dtype=torch.float64, device=dev)
+        self._fine_steps = None if t.fine_steps_deg is None else \
+            torch.tensor([math.radians(s) for s in t.fine_steps_deg], dtype=torch.float64, device=dev)
         lo_hi = torch.tensor([t.init_angles_deg[k] for k in ANGLE_NAMES], dtype=torch.float64, device=dev)
         self._angle_lo, self._angle_hi = torch.deg2rad(lo_hi[:, 0]), torch.deg2rad(lo_hi[:, 1])
         self._rng = torch.Generator(device=dev)
@@ -390,9 +406,12 @@ class LaserCavityEnv(EnvBase):
         t = self.task
         if t.K_drift or t.K_jump:  # K for this step
             self.state.K = drift_K(self.state.K, t.K[0], t.K[1], t.K_drift, t.K_jump, self._rng)
+        steps = self._steps
+        if self._fine_steps is not None and self._signal is not None:  # (B, m): fine steps near a lock
+            steps = torch.where((self._signal >= t.fine_from).unsqueeze(-1), self._fine_steps, self._steps)
         if self._reported is not None:  # the read-back moves with the action as the plates do
-            self._reported = apply_action(self._reported, action, self._steps, self._ctrl_idx)
-        self.state, measured = step(self.state, action, self._steps, self._ctrl_idx, self.params, self._numerics)
+            self._reported = apply_action(self._reported, action, steps, self._ctrl_idx)
+        self.state, measured = step(self.state, action, steps, self._ctrl_idx, self.params, self._numerics)
         out = self._observation(measured.r, measured.round_trips)
         # the training reward: r, or with measured observations the readings' r_measured
         reward = out.get("r_measured").squeeze(-1) if self._measured else measured.r

@@ -159,7 +159,7 @@ def drift_K(K: torch.Tensor, low: float, high: float, sigma: float, jump_prob: f
 def apply_action(angles: torch.Tensor, action: torch.Tensor, steps_rad: torch.Tensor,
                  controlled_index: torch.Tensor) -> torch.Tensor:
     """The angles (B, 4) after discrete ``action`` (B,) (``laserrl.envs.actions``) turns the
-    ``controlled_index`` plates by their ``steps_rad`` (m,), wrapped to [-pi/2, pi/2)."""
+    ``controlled_index`` plates by their ``steps_rad`` (m,) or per cavity (B, m), wrapped to [-pi/2, pi/2)."""
     out = angles.clone()
     out[:, controlled_index] = wrap_angle(angles[:, controlled_index] + action_to_deltas(action, steps_rad))
     return out

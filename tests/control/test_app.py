@@ -174,9 +174,9 @@ def test_a_measured_model_with_history_controls_imperfect_plates(tmp_path):
         assert read.shape == r.shape == (2, 4) and np.isfinite(read).all() and not np.allclose(read, r)
 
 
-def _always(checkpoint, out, K, sign):
-    """A copy of ``checkpoint`` (siso) labelled as trained at ``K`` whose greedy action always moves
-    alpha1 by ``sign`` steps."""
+def _always(checkpoint, out, K, sign, **stage):
+    """A copy of ``checkpoint`` (siso) labelled as trained at ``K`` (and with the ``stage`` settings)
+    whose greedy action always moves alpha1 by ``sign`` steps."""
     import copy
 
     import torch
@@ -186,6 +186,7 @@ def _always(checkpoint, out, K, sign):
     state = load_model(checkpoint)
     meta = copy.deepcopy(state["meta"])
     meta["K"] = meta["config"]["stage"]["K"] = K
+    meta["config"]["stage"].update(stage)
     weights = dict(state["qnet"])
     weights["head.4.weight"] = torch.zeros_like(weights["head.4.weight"])
     weights["head.4.bias"] = torch.tensor([10.0, 0.0, 0.0]) if sign < 0 else torch.tensor([0.0, 0.0, 10.0])
@@ -226,6 +227,19 @@ def test_rl_steps_deg_sets_the_plate_turn_of_one_step_of_deep_RL(checkpoint, tmp
         assert out["rl_fine"] == {"steps_deg": [2.0], "from_r": level}
         a = [out["init_angles_deg"][0][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
         assert [a[t + 1] - a[t] for t in range(3)] == pytest.approx([step] * 3)
+
+
+def test_deep_RL_turns_as_a_checkpoint_trained_with_fine_steps_near_a_lock(checkpoint, tmp_path):
+    # trained in 2 deg steps with 0.25 deg from fine_from on: its own rule unless the settings replace it
+    for level, step in ((0.0, 0.25), (1e9, 2.0)):
+        up = _always(checkpoint, tmp_path / f"up{level}", 0.0, +1, fine_steps_deg=[0.25], fine_from=level)
+        for i, (settings, expected) in enumerate((([], step), ([f"rl_fine_from_r={1e9 - level}"], 2.0 if level == 0 else 0.25),
+                                                  (["rl_steps_deg=1.0"], 0.25 if level == 0 else 1.0))):
+            out = _run(["controller=rl", f"checkpoint={up}", "scenario.steps=3", "progress=false", *settings],
+                       tmp_path / f"{level}-{i}")
+            assert out["rl_fine"]["steps_deg"] == [0.25]
+            a = [out["init_angles_deg"][0][0]] + [x[0] for x in out["traces"]["rl"]["angles_deg"][0]]
+            assert [a[t + 1] - a[t] for t in range(3)] == pytest.approx([expected] * 3), (level, settings)
 
 
 def test_a_bank_refuses_a_checkpoint_beside_it_and_unknown_rules(checkpoint, tmp_path):

@@ -273,6 +273,44 @@ def test_move_cost_from_charges_only_moves_that_start_at_or_above_it_also_after_
     assert 0 < charged < 9  # the threshold splits the nine moves
 
 
+def test_fine_steps_turn_the_plates_from_states_whose_reward_reaches_fine_from_also_after_a_partial_reset():
+    kw = dict(batch_size=4, seed=3, controlled=ANGLE_NAMES, steps_deg=(1.0,) * 4, **FAST)
+    actions = torch.full((4,), num_actions(4) - 1)  # every plate up by one step
+    reset_first = TensorDict(_reset=torch.tensor([[True], [False], [False], [False]]), batch_size=[4])
+
+    def run(env):  # three steps, cavity 0 reset before the third: (r before the step, angle turns in deg) per step
+        td = env.reset()
+        rows = []
+        for i in range(3):
+            if i == 2:
+                fresh = env.reset(reset_first.clone())
+                td = td.update(fresh.exclude("r")).set("r", torch.where(reset_first["_reset"], fresh["r"], td["r"]))
+            before, angles = td["r"].clone(), env.angles_deg()
+            td = step(env, td, actions)["next"]
+            rows.append((before, (env.angles_deg() - angles + 90) % 180 - 90))  # alpha_p wraps at 90 deg
+            td = td.exclude("reward", "done", "terminated", "truncated")
+        return rows
+
+    plain = run(LaserCavityEnv(**kw))
+    level = float(torch.cat([r for r, _ in plain]).median())  # some turns start above it, some below
+    fine = run(LaserCavityEnv(fine_steps_deg=(0.25,) * 4, fine_from=level, **kw))
+    near = torch.cat([r >= level for r, _ in fine])
+    assert 0 < int(near.sum()) < 12
+    turns = torch.cat([t for _, t in fine])
+    torch.testing.assert_close(turns, torch.where(near, 0.25, 1.0).expand(-1, 4).to(turns))
+    for _, t in plain:
+        torch.testing.assert_close(t, torch.ones_like(t))
+
+
+@pytest.mark.parametrize("settings, match", [
+    (dict(fine_steps_deg=(0.25,)), "go together"), (dict(fine_from=0.3), "go together"),
+    (dict(fine_steps_deg=(0.25, 0.25), fine_from=0.3), "fine_steps_deg"),
+    (dict(fine_steps_deg=(0.0,), fine_from=0.3), "fine_steps_deg"), (dict(fine_steps_deg=(0.25,), fine_from=math.nan), "fine_from")])
+def test_bad_fine_steps_are_named(settings, match):
+    with pytest.raises(ValueError, match=match):
+        LaserCavityEnv(batch_size=1, **settings)
+
+
 @pytest.mark.parametrize("start", [math.nan, "0.3", True])
 def test_bad_move_cost_from_is_named(start):
     with pytest.raises(ValueError, match="move_cost_from"):
