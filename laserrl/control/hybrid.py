@@ -2,9 +2,8 @@
 
 The hybrid's rule (per cavity, the paper's section 4):
 
-* deep RL -> ESC when r >= ``lock_r`` for ``lock_steps`` consecutive steps, or with
-  ``lock_window`` = m on at least ``lock_steps`` of the last m steps including this one (a
-  reading that wavers about ``lock_r`` on a weak lock); ESC starts from the current angles (estimates = angles, filters in the steady state of the
+* deep RL -> ESC when r >= ``lock_r`` for ``lock_steps`` consecutive steps; ESC starts
+  from the current angles (estimates = angles, filters in the steady state of the
   current r). With ``settle_steps`` = w > 0, also only once the agent's climb has
   levelled off: r is no more than ``settle_rise`` (a fraction) above the highest r of the
   w steps before. The level alone is calibrated on one cavity (the instruments' reading
@@ -106,7 +105,6 @@ class HybridRule:
 
     lock_r: float = 0.15
     lock_steps: int = 1
-    lock_window: int | None = None  # count lock_steps among the last lock_window steps (None: consecutive)
     unlock_r: float = 0.1
     unlock_steps: int = 3
     restart_memory: bool = False  # a recurrent agent's memory restarts when the lock is lost
@@ -121,8 +119,6 @@ class HybridRule:
         for name in ("lock_steps", "unlock_steps"):
             integer(self, name, 1)
         integer(self, "settle_steps", 0)
-        if self.lock_window is not None:
-            integer(self, "lock_window", self.lock_steps)
         if not isinstance(self.restart_memory, bool):
             raise ValueError(f"restart_memory must be true or false, got {self.restart_memory!r}")
         if self.unlock_r > self.lock_r:
@@ -139,8 +135,6 @@ class Hybrid:
         self.esc = ExtremumSeeking(esc_params, controlled, num_cavities)
         self.mode = torch.full((num_cavities,), MODE_RL, dtype=torch.int64)
         self._above = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r >= lock_r
-        # whether r >= lock_r on each of the last lock_window steps (newest last)
-        self._window = torch.zeros(num_cavities, int(rule.lock_window or 0), dtype=torch.bool)
         self._below = torch.zeros(num_cavities, dtype=torch.int64)  # consecutive steps with r < unlock_r
         self.switches = torch.zeros(num_cavities, dtype=torch.int64)
         # r of the last settle_steps steps (newest last); -inf before the first step: nothing to level off from
@@ -150,7 +144,6 @@ class Hybrid:
         self.mode.fill_(MODE_RL)
         self._recent.fill_(float("-inf"))
         self._above.zero_()
-        self._window.zero_()
         self._below.zero_()
         self.switches.zero_()
         self.rl.reset(obs, angles_deg)
@@ -160,12 +153,7 @@ class Hybrid:
         self._above = torch.where(r >= self.rule.lock_r, self._above + 1, 0)
         self._below = torch.where(r < self.rule.unlock_r, self._below + 1, 0)
         esc = self.mode == MODE_ESC
-        if self.rule.lock_window:
-            at_lock = r >= self.rule.lock_r
-            self._window = torch.cat([self._window[:, 1:], at_lock[:, None]], dim=1)
-            engage = ~esc & at_lock & (self._window.sum(-1) >= self.rule.lock_steps)
-        else:
-            engage = ~esc & (self._above >= self.rule.lock_steps)
+        engage = ~esc & (self._above >= self.rule.lock_steps)
         if self.rule.settle_steps:
             # the climb has ended: r is not above the recent steps' best by more than settle_rise
             r64 = r.to(torch.float64)
@@ -177,7 +165,6 @@ class Hybrid:
         switched = engage | release
         self.mode = torch.where(engage, MODE_ESC, torch.where(release, MODE_RL, self.mode))
         self._above = torch.where(switched, 0, self._above)
-        self._window &= ~switched[:, None]
         self._below = torch.where(switched, 0, self._below)
         self.switches += switched.long()
         if self.rule.restart_memory and bool(release.any()):

@@ -296,13 +296,13 @@ def test_the_fixed_K_grid_runs_the_K_blind_agent_as_laserrl_eval_scores_it(tmp_p
 
 
 @pytest.mark.parametrize("name, base", [("any_k_hybrid", "measured_hybrid"), ("any_k_grid_hybrid_coarse", "any_k_grid_hybrid")])
-def test_the_coarse_search_hybrids_change_only_the_model_and_the_hybrids_three_settings(name, base):
+def test_the_coarse_search_hybrids_change_only_the_model_and_the_hybrids_settings(name, base):
     """experiment=any_k_hybrid and any_k_grid_hybrid_coarse (docs/measured.md): their base experiment with
-    zoo:miso-any-k-gru-wide, deep RL in 1 deg steps (its own 0.5 deg at the hybrid's lock level), settle_steps=3
-    and lock_steps=5, and nothing else changed
+    zoo:miso-any-k-gru-wide, deep RL in 1 deg steps (its own 0.5 deg at the instruments' lock level), settle_steps=3,
+    lock_steps=5 and lock_r=0.30, and nothing else changed
     (the drift run also runs the agent alone beside the hybrid, compiled)."""
     settings = ["checkpoint=zoo:miso-any-k-gru-wide", "rl_steps_deg=1.0", "rl_fine_from_r=0.454",
-                "controller.hybrid.settle_steps=3", "controller.hybrid.lock_steps=5"]
+                "controller.hybrid.settle_steps=3", "controller.hybrid.lock_steps=5", "controller.hybrid.lock_r=0.30"]
     if name == "any_k_hybrid":
         settings += ["controller.only=[hybrid,rl]", "compile=true"]
     got = OmegaConf.to_container(_compose([f"experiment={name}", "run_dir=x"]), resolve=True)

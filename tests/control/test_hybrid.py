@@ -72,24 +72,6 @@ def test_hybrid_with_settle_steps_waits_for_the_climb_to_end():
     assert plain.mode.tolist() == [MODE_ESC, MODE_ESC]
 
 
-def test_hybrid_with_a_lock_window_counts_lock_steps_among_the_last_steps():
-    """With lock_window, a reading that wavers about lock_r engages ESC once lock_steps of the last
-    lock_window steps were at the lock, on a step at the lock; consecutive steps without it."""
-    r0 = [0.05, 0.16, 0.14, 0.16, 0.14, 0.16, 0.14, 0.16]  # at the lock every other step
-    r1 = [0.05, 0.16, 0.05, 0.05, 0.05, 0.16, 0.05, 0.05]  # twice in five steps
-    angles = torch.tensor([[-30.0, 3.0, 28.0, 88.0]] * 2, dtype=torch.float64)
-    for window, expect0 in ((None, [0] * 8), (5, [0, 0, 0, 0, 0, 1, 1, 1])):
-        rule = HybridRule(lock_r=0.15, lock_steps=3, lock_window=window, unlock_r=0.1, unlock_steps=3)
-        hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(), rule, ["alpha1"], 2)
-        hybrid.reset(_obs([0.0, 0.0]), angles)
-        modes = []
-        for t in range(len(r0)):
-            hybrid.act(_obs([r0[t], r1[t]]), angles)
-            modes.append(hybrid.mode.tolist())
-        assert [m[0] for m in modes] == expect0, window
-        assert [m[1] for m in modes] == [MODE_RL] * 8
-
-
 def test_esc_restarts_from_the_current_angles_on_engagement():
     hybrid = Hybrid(DeepRL(AlwaysIncrease(), ["alpha1"], [2.0]), ESCParams(amplitude_deg=0.5),
                     HybridRule(lock_steps=1), ["alpha1"], 1)
@@ -105,9 +87,7 @@ def test_esc_restarts_from_the_current_angles_on_engagement():
                                         ({"lock_steps": float("inf")}, "lock_steps"), ({"unlock_steps": "3"}, "unlock_steps"),
                                         ({"restart_memory": "yes"}, "restart_memory"),
                                         ({"settle_steps": -1}, "settle_steps"),
-                                        ({"settle_rise": float("nan")}, "settle_rise"),
-                                        ({"lock_steps": 3, "lock_window": 2}, "lock_window"),
-                                        ({"lock_window": 2.5}, "lock_window")])
+                                        ({"settle_rise": float("nan")}, "settle_rise")])
 def test_bad_rule_names_the_value(bad, match):
     with pytest.raises(ValueError, match=match):
         HybridRule(**bad)
