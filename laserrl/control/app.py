@@ -283,7 +283,8 @@ def run_control(cfg: DictConfig) -> dict:
         print(f"{n}: {_row(n, results[n]['summary'])}", flush=True)
 
     out = {
-        "controllers": names, "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
+        "controllers": names, "controller_settings": configs,  # each controller's settings as run (e.g. the hybrid's lock_r)
+        "scenario": {**scfg, "jump_times": scenario.jumps["times"]},
         "num_cavities": B, "seed": seed, "controlled": controlled, "rl_steps_deg": steps_deg,
         "rl_fine": None if rl_fine is None else {"steps_deg": rl_fine[0], "from_r": rl_fine[1]}, "locked_r": float(cfg.locked_r),
         "success_r": float(cfg.success_r),

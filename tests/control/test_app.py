@@ -112,11 +112,14 @@ def test_entry_point_runs_every_controller(checkpoint, tmp_path):
     exe = Path(sys.executable).parent / "laserrl-control"
     res = subprocess.run([str(exe), "controller=all", "scenario=drift_jumps", f"checkpoint={checkpoint}", "num_cavities=2",
                           f"scenario.steps={steps}", f"scenario.jumps.times=[{jump}]", "compile=false",
-                          f"hydra.run.dir={tmp_path}"], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+                          "controller.hybrid.lock_r=0.2", f"hydra.run.dir={tmp_path}"], cwd=tmp_path, capture_output=True,
+                         text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert f"control: {tmp_path / 'control.json'}" in res.stdout
     out = json.loads((tmp_path / "control.json").read_text())
     assert out["controllers"] == list(ALL) and out["controlled"] == ["alpha1"]
+    assert set(out["controller_settings"]) == set(ALL)  # the settings each controller ran with
+    assert out["controller_settings"]["hybrid"]["lock_r"] == 0.2 and out["controller_settings"]["hybrid"]["esc"]["gain"] > 0
     assert out["env"]["max_round_trips"] == 5 and out["env"]["physics"]["n"] == 64  # the checkpoint's per-step physics
     K = out["K"]
     assert len(K) == 2 and len(K[0]) == steps and all(k[jump] != k[jump - 1] for k in K)
