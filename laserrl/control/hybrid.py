@@ -31,6 +31,7 @@ from laserrl.control.checks import integer, is_finite_number
 from laserrl.control.esc import ESCParams, ExtremumSeeking, observed_r
 from laserrl.envs.actions import action_to_deltas
 from laserrl.envs.laser_env import ANGLE_NAMES
+from laserrl.envs.step import turn_steps
 
 #: controller modes recorded per step (``mode`` in control.json and the plot)
 MODE_RL, MODE_ESC = 0, 1
@@ -93,8 +94,8 @@ class DeepRL:
         command = angles_deg.clone().to(torch.float64)
         steps = self.steps.to(action.device)
         if self.fine_steps is not None:  # per cavity: the fine steps where the reward read reaches fine_from_r
-            near = torch.from_numpy(observed_r(obs) >= self.fine_from_r).to(action.device)[:, None]
-            steps = torch.where(near, self.fine_steps.to(action.device), steps)
+            steps = turn_steps(steps, self.fine_steps.to(action.device), torch.from_numpy(observed_r(obs)).to(action.device),
+                               self.fine_from_r)
         command[:, self.idx] += action_to_deltas(action.reshape(-1), steps).to(command)
         return command
 

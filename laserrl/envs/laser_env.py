@@ -28,7 +28,7 @@ from torchrl.envs import EnvBase
 
 from laserrl.envs.actions import hold_action, num_actions
 from laserrl.envs.step import (CavityState, StepNumerics, apply_action, draw_cavities, drift_K, observe,
-                               observe_measured, step, wrap_angle)
+                               observe_measured, step, turn_steps, wrap_angle)
 from laserrl.physics.checks import CAVITY_KEYS
 from laserrl.physics.instruments import Instruments, spectrum_matrix
 from laserrl.physics.run import CONVERGENCE_FLOOR
@@ -67,6 +67,16 @@ def _sequence(value, name: str) -> tuple:
     if isinstance(value, str) or not isinstance(value, Sequence):
         raise ValueError(f"{name} must be a list, got {value!r}")
     return tuple(value)
+
+
+def _plate_steps(value, name: str, count: int) -> tuple[float, ...]:
+    """``steps_deg`` / ``fine_steps_deg``: one finite step > 0 per controlled angle."""
+    steps = tuple(finite_number(s, name) for s in _sequence(value, name))
+    if len(steps) != count:
+        raise ValueError(f"{name} needs one step per controlled angle ({count}), got {steps!r}")
+    if not all(s > 0 for s in steps):
+        raise ValueError(f"{name} must be positive and finite, got {steps!r}")
+    return steps
 
 
 def _spread(value) -> tuple[float, ...] | None:
@@ -146,7 +156,6 @@ class LaserTask:
 
     def __post_init__(self):
         self.controlled = _sequence(self.controlled, "controlled")
-        self.steps_deg = tuple(finite_number(s, "steps_deg") for s in _sequence(self.steps_deg, "steps_deg"))
         if not all(isinstance(name, str) for name in self.controlled):
             raise ValueError(f"controlled must name angles of {ANGLE_NAMES}, got {self.controlled!r}")
         if not self.controlled or len(set(self.controlled)) != len(self.controlled):
@@ -154,11 +163,7 @@ class LaserTask:
         for name in self.controlled:
             if name not in ANGLE_NAMES:
                 raise ValueError(f"controlled: unknown angle {name!r}; choose from {ANGLE_NAMES}")
-        if len(self.steps_deg) != len(self.controlled):
-            raise ValueError(f"steps_deg needs one step per controlled angle ({len(self.controlled)}), got {self.steps_deg!r}")
-        for s in self.steps_deg:
-            if not s > 0:
-                raise ValueError(f"steps_deg must be positive and finite, got {self.steps_deg!r}")
+        self.steps_deg = _plate_steps(self.steps_deg, "steps_deg", len(self.controlled))
         if not isinstance(self.init_angles_deg, Mapping):
             raise ValueError(f"init_angles_deg must map angle names to a number or a [low, high] pair, got {self.init_angles_deg!r}")
         init = dict(self.init_angles_deg)
@@ -196,10 +201,7 @@ class LaserTask:
             raise ValueError(f"fine_steps_deg and fine_from go together (finer steps from a reward signal on), got "
                              f"fine_steps_deg={self.fine_steps_deg!r}, fine_from={self.fine_from!r}")
         if self.fine_steps_deg is not None:
-            self.fine_steps_deg = tuple(finite_number(s, "fine_steps_deg") for s in _sequence(self.fine_steps_deg, "fine_steps_deg"))
-            if len(self.fine_steps_deg) != len(self.controlled) or not all(s > 0 for s in self.fine_steps_deg):
-                raise ValueError(f"fine_steps_deg needs one positive step per controlled angle ({len(self.controlled)}), "
-                                 f"got {self.fine_steps_deg!r}")
+            self.fine_steps_deg = _plate_steps(self.fine_steps_deg, "fine_steps_deg", len(self.controlled))
             self.fine_from = finite_number(self.fine_from, "fine_from")
         if not isinstance(self.dtype, str) or self.dtype not in _DTYPES:
             raise ValueError(f"dtype must be one of {sorted(_DTYPES)}, got {self.dtype!r}")
@@ -408,7 +410,7 @@ class LaserCavityEnv(EnvBase):
             self.state.K = drift_K(self.state.K, t.K[0], t.K[1], t.K_drift, t.K_jump, self._rng)
         steps = self._steps
         if self._fine_steps is not None and self._signal is not None:  # (B, m): fine steps near a lock
-            steps = torch.where((self._signal >= t.fine_from).unsqueeze(-1), self._fine_steps, self._steps)
+            steps = turn_steps(self._steps, self._fine_steps, self._signal, t.fine_from)
         if self._reported is not None:  # the read-back moves with the action as the plates do
             self._reported = apply_action(self._reported, action, steps, self._ctrl_idx)
         self.state, measured = step(self.state, action, steps, self._ctrl_idx, self.params, self._numerics)

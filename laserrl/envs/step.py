@@ -165,6 +165,12 @@ def apply_action(angles: torch.Tensor, action: torch.Tensor, steps_rad: torch.Te
     return out
 
 
+def turn_steps(steps: torch.Tensor, fine_steps: torch.Tensor, signal: torch.Tensor, fine_from: float) -> torch.Tensor:
+    """(B, m) plate turn of each cavity: ``fine_steps`` (m,) where its reward signal (B,) is at least
+    ``fine_from`` (near a lock), else ``steps`` (m,) (a coarse search)."""
+    return torch.where((signal >= fine_from).unsqueeze(-1), fine_steps, steps)
+
+
 def step(state: CavityState, action: torch.Tensor, steps_rad: torch.Tensor, controlled_index: torch.Tensor,
          params: CavityParams, numerics: StepNumerics) -> tuple[CavityState, StepOutput]:
     """One agent step of a discrete action: ``apply_action``, then ``step_cavity``."""
