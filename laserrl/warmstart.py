@@ -8,6 +8,10 @@ the last layer) of the old joint action that moves the *old* controlled angles t
 way. E.g. from ``siso`` (alpha1) to ``duo`` (alpha1, alpha2): the new actions
 "alpha1 up, alpha2 down/hold/up" all start from the old "alpha1 up". The new angles'
 moves therefore start indifferent, and the learned alpha1 behaviour carries over.
+
+The same for an additive head (``agent.network.head=additive``; ``laserrl.agents.qnet.AdditiveActionValues``),
+whose last layer has a row for V and three per controlled angle: V and each old angle's rows carry
+over to the same angle, and the new angles' rows start at zero (their moves indifferent).
 """
 from __future__ import annotations
 
@@ -15,11 +19,11 @@ from typing import Sequence
 
 import torch
 
-from laserrl.agents.qnet import FieldQNet
+from laserrl.agents.qnet import AdditiveActionValues, FieldQNet
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import load_model
 
-__all__ = ["warm_start", "head_mapping"]
+__all__ = ["warm_start", "head_mapping", "additive_head_mapping"]
 
 
 def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> torch.Tensor:
@@ -41,6 +45,25 @@ def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -
     return old
 
 
+def additive_head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> torch.Tensor:
+    """For every row of a grown additive head's last layer (V, then down / hold / up of each new
+    controlled angle), the old row it inherits, or -1 for the moves of an angle the old head lacks."""
+    missing = [a for a in old_controlled if a not in new_controlled]
+    if missing:
+        raise CheckpointError(f"cannot grow the Q-head: the checkpoint controls {list(old_controlled)}, "
+                              f"this stage controls {list(new_controlled)} (missing {missing})")
+    rows = [0]
+    for name in new_controlled:
+        i = list(old_controlled).index(name) if name in old_controlled else None
+        rows += [-1, -1, -1] if i is None else [1 + 3 * i + d for d in range(3)]
+    return torch.tensor(rows)
+
+
+def head_kind(qnet) -> str:
+    """``additive`` if ``qnet`` ends in ``AdditiveActionValues``, else ``joint``."""
+    return "additive" if isinstance(qnet.head[-1], AdditiveActionValues) else "joint"
+
+
 def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | None = None) -> dict:
     """Copy a checkpoint's Q-network into ``qnet``; grow the head by ``head_mapping`` if needed.
 
@@ -54,6 +77,10 @@ def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | Non
         raise CheckpointError(f"{state['path']} is an ensemble of {state['meta']['ensemble']} models; warm-start "
                               "from one of its members")
     weights = dict(state["qnet"])
+    old_head, new_head = state["config"].get("agent", {}).get("network", {}).get("head", "joint"), head_kind(qnet)
+    if old_head != new_head:
+        raise CheckpointError(f"checkpoint {state['path']} has a {old_head} Q-head (agent.network.head); "
+                              f"this network's is {new_head}")
     old_n, new_n = int(state["num_actions"]), qnet.num_actions
     old_controlled = list(state["config"].get("stage", {}).get("controlled", []))
     refuse = CheckpointError(
@@ -67,11 +94,20 @@ def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | Non
     elif old_n != new_n:
         raise refuse
     if old_n != new_n:
-        index = head_mapping(old_controlled, list(controlled))
         last = max(int(k.split(".")[1]) for k in weights if k.startswith("head."))
-        for suffix in ("weight", "bias"):
-            key = f"head.{last}.{suffix}"
-            weights[key] = weights[key][index]
+        if new_head == "joint":
+            index = head_mapping(old_controlled, list(controlled))
+            for suffix in ("weight", "bias"):
+                key = f"head.{last}.{suffix}"
+                weights[key] = weights[key][index]
+        else:
+            index = additive_head_mapping(old_controlled, list(controlled))
+            kept = index >= 0
+            for suffix in ("weight", "bias"):
+                key = f"head.{last}.{suffix}"
+                grown = weights[key].new_zeros((len(index), *weights[key].shape[1:]))
+                grown[kept] = weights[key][index[kept]]
+                weights[key] = grown
     try:
         qnet.load_state_dict(weights)
     except RuntimeError as err:

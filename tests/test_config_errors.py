@@ -71,7 +71,8 @@ def _compose(overrides):
     ("env.physics.n=100", "env.physics.n"), ("env.physics.z_steps=0", "env.physics.z_steps"),
     ("env.physics.T=-60", "env.physics.T"), ("env.physics.Gamma=nan", "env.physics.Gamma"),
     ("agent.network.channels=[16,0]", "agent.network.channels"), ("agent.network.kernel_size=4", "agent.network"),
-    ("agent.network.pool=64", "agent.network"), ("seed=-1", "seed"), ("threads=0", "threads"),
+    ("agent.network.pool=64", "agent.network"), ("agent.network.head=joined", "agent.network.head"),
+    ("seed=-1", "seed"), ("threads=0", "threads"),
     # wrong types
     ("env.num_envs=many", "env.num_envs"), ("stage.K=[0.1,high]", "stage.K"), ("stage.steps_deg=2", "stage.steps_deg"),
     ("stage.max_steps=2.5", "stage.max_steps"),

@@ -201,3 +201,14 @@ def test_wider_recipe_is_the_wide_recipe_over_a_wider_K_range():
     assert list(stages["miso"].stage.K) == [-0.3, 0.5] and list(wide["miso"].stage.K) == [-0.25, 0.45]
     assert min(stages["miso"].eval.K) == -0.2 and max(stages["miso"].eval.K) == 0.4
     _assert_stages_differ_only_in(stages, wide, "K")
+
+
+def test_additive_recipe_is_the_wide_recipe_with_an_additive_q_head_in_every_stage():
+    """experiment=miso_any_k_gru_wide_additive gives every stage's Q-network the additive head (so the
+    curriculum's warm starts grow it) and changes nothing else."""
+    stages, wide = _recipe_stages("miso_any_k_gru_wide_additive"), _recipe_stages("miso_any_k_gru_wide")
+    assert stages.keys() == wide.keys()
+    for name, sub in stages.items():
+        assert sub.agent.network.head == "additive" and wide[name].agent.network.head == "joint"
+        sub.agent.network.head = "joint"
+        assert sub == wide[name], name

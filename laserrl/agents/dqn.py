@@ -21,11 +21,12 @@ from torchrl.envs.transforms import MultiStepTransform
 from torchrl.modules import EGreedyModule, QValueActor, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
-from laserrl.agents.qnet import FieldQNet, MeasuredQNet, RecurrentMeasuredQNet, is_recurrent
+from laserrl.agents.qnet import HEADS, FieldQNet, MeasuredQNet, RecurrentMeasuredQNet, is_recurrent
 from laserrl.validate import ConfigError, check_number, check_numbers, check_one_of
 
 
-def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, hidden, negative_slope: float) -> FieldQNet:
+def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, hidden, negative_slope: float,
+              head: str = "joint") -> FieldQNet:
     """The Q-network of the ``agent.network`` config; bad values raise a ConfigError naming the key."""
     channels = check_numbers(channels, "agent.network.channels", low=1, integer=True)
     hidden = check_numbers(hidden, "agent.network.hidden", low=1, integer=True)
@@ -34,12 +35,13 @@ def make_qnet(num_actions: int, n: int, channels, kernel_size: int, pool: int, h
     negative_slope = check_number(negative_slope, "agent.network.negative_slope", low=0)
     try:
         return FieldQNet(num_actions, n=n, channels=tuple(channels), kernel_size=kernel_size, pool=pool,
-                         hidden=tuple(hidden), negative_slope=negative_slope)
+                         hidden=tuple(hidden), negative_slope=negative_slope, head=head)
     except ValueError as err:  # combinations only the network can judge (odd kernel, pooling vs n)
         raise ConfigError(f"agent.network: {err}") from None
 
 
-def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float) -> MeasuredQNet | RecurrentMeasuredQNet:
+def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float,
+                       head: str = "joint") -> MeasuredQNet | RecurrentMeasuredQNet:
     """The Q-network for ``env.observation=measured``: its inputs from ``env.instruments`` and
     ``env.history``, its layers from ``agent.network.hidden`` and ``negative_slope``; with
     ``env.gru_size`` a GRU of that size between the first layer and the rest."""
@@ -52,7 +54,7 @@ def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float)
     try:
         ins = Instruments(**dict(env_cfg.get("instruments") or {}))  # its defaults for the settings not given
         shape = dict(bins=ins.spectrum_bins, points=ins.autocorrelation_points, history=history_length(env_cfg),
-                     hidden=tuple(hidden), negative_slope=negative_slope)
+                     hidden=tuple(hidden), negative_slope=negative_slope, head=head)
         memory = gru_size(env_cfg)
         if memory is not None:
             return RecurrentMeasuredQNet(num_actions, gru_size=memory, **shape)
@@ -63,10 +65,12 @@ def make_measured_qnet(num_actions: int, env_cfg, hidden, negative_slope: float)
 
 def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet | RecurrentMeasuredQNet:
     """The Q-network for an env of config ``env_cfg`` (its ``observation``, grid, instruments and
-    history) with ``num_actions`` joint actions and the ``agent.network`` config ``network``."""
+    history) with ``num_actions`` joint actions and the ``agent.network`` config ``network`` (a
+    config without ``head``, as saved before the key existed, has the paper's joint head)."""
+    head = check_one_of(network.get("head", "joint"), "agent.network.head", HEADS)
     observation = env_cfg.get("observation", "fields")
     if observation == "measured":
-        return make_measured_qnet(num_actions, env_cfg, network["hidden"], network["negative_slope"])
+        return make_measured_qnet(num_actions, env_cfg, network["hidden"], network["negative_slope"], head)
     from laserrl.envs.factory import gru_size, history_length
 
     if history_length(env_cfg) != 1:
@@ -74,7 +78,7 @@ def build_qnet(num_actions: int, env_cfg, network) -> FieldQNet | MeasuredQNet |
     if gru_size(env_cfg) is not None:
         raise ConfigError("env.gru_size needs env.observation=measured (the fields network has no memory)")
     return make_qnet(num_actions, int((env_cfg.get("physics") or {}).get("n", 256)), network["channels"],
-                     network["kernel_size"], network["pool"], network["hidden"], network["negative_slope"])
+                     network["kernel_size"], network["pool"], network["hidden"], network["negative_slope"], head)
 
 
 def make_actor(qnet: FieldQNet | MeasuredQNet | RecurrentMeasuredQNet, action_spec) -> QValueActor:

@@ -3,6 +3,9 @@ waveplate angles joined after the convolutions, then fully connected layers with
 giving one Q-value per joint action), and two for what instruments measure: feed-forward over the
 last readings, and with a GRU's memory of the episode.
 
+Each ends in a Q-head (``q_head``): ``joint``, the paper's, one output per joint action; or
+``additive``, one value per move of each angle, summed over the angles (``AdditiveActionValues``).
+
 Each network names the observation keys it reads (``in_keys``) and its ``observation``
 (``laserrl.envs.laser_env.LaserTask.observation``)."""
 from __future__ import annotations
@@ -23,6 +26,7 @@ class FieldQNet(nn.Module):
             padding), each followed by leaky ReLU and MaxPool1d(``pool``).
         hidden: widths of the fully connected layers after the join.
         negative_slope: leaky ReLU slope.
+        head: ``joint`` or ``additive`` (``q_head``).
 
     The angles enter as (sin 2a, cos 2a): the optics have period pi in every angle,
     so the encoding is continuous across the wrap at +-90 deg.
@@ -32,7 +36,7 @@ class FieldQNet(nn.Module):
     observation = "fields"
 
     def __init__(self, num_actions: int, n: int = 256, channels: Sequence[int] = (16, 32, 32), kernel_size: int = 5,
-                 pool: int = 2, hidden: Sequence[int] = (128, 64), negative_slope: float = 0.01):
+                 pool: int = 2, hidden: Sequence[int] = (128, 64), negative_slope: float = 0.01, head: str = "joint"):
         super().__init__()
         if num_actions < 1:
             raise ValueError(f"num_actions must be >= 1, got {num_actions}")
@@ -48,7 +52,7 @@ class FieldQNet(nn.Module):
             in_ch = int(ch)
         self.features = nn.Sequential(*layers)
         flat = in_ch * (n // pool ** len(channels))
-        self.head = leaky_mlp(flat + 8, hidden, num_actions, negative_slope)
+        self.head = q_head(flat + 8, hidden, num_actions, negative_slope, head)
         self.num_actions = num_actions
         self.n = n
 
@@ -67,6 +71,62 @@ def leaky_mlp(width: int, hidden: Sequence[int], out: int, negative_slope: float
         width = int(h)
     layers.append(nn.Linear(width, out))
     return nn.Sequential(*layers)
+
+
+HEADS = ("joint", "additive")
+
+
+def controlled_count(num_actions: int) -> int:
+    """m for 3^m joint actions (``laserrl.envs.actions``); ValueError if ``num_actions`` is no power of 3."""
+    m = 0
+    while 3**m < num_actions:
+        m += 1
+    if 3**m != num_actions:
+        raise ValueError(f"num_actions must be a power of 3 (3^m joint actions of m angles), got {num_actions}")
+    return m
+
+
+class AdditiveActionValues(nn.Module):
+    """Q(s, a) = V(s) + sum_j [A_j(s, d_j) - mean_d A_j(s, d)], from the 1 + 3m values
+    (V, then A_j for the moves d = down, hold, up of each controlled angle j) to one value per joint
+    action a = (d_1, ..., d_m) (``laserrl.envs.actions``' encoding: 3^m values).
+
+    A plate turn of one step changes the cavity's output to first order by a sum over the angles, and
+    the greedy action of such a Q is each angle's best move on its own: all-hold wherever no single
+    angle gains by moving, one choice among 3 per angle rather than one among 3^m. The mean over each
+    angle's moves is taken out so that V is the mean joint action's value (a dueling head, one per angle).
+    """
+
+    def __init__(self, m: int):
+        super().__init__()
+        if int(m) != m or m < 1:
+            raise ValueError(f"m must be an integer >= 1, got {m!r}")
+        self.m = int(m)
+        digits = (torch.arange(3**self.m)[:, None] // 3 ** torch.arange(self.m)) % 3  # (3^m, m)
+        # column of each angle's move among the 3m advantages. Not a buffer: it follows from m, and an
+        # integer buffer would be averaged with the weights (agent.average_decay)
+        self._index = digits + 3 * torch.arange(self.m)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if x.shape[-1] != 1 + 3 * self.m:
+            raise ValueError(f"AdditiveActionValues({self.m}) reads {1 + 3 * self.m} values, got {x.shape[-1]}")
+        adv = x[..., 1:].unflatten(-1, (self.m, 3))
+        adv = (adv - adv.mean(-1, keepdim=True)).flatten(-2)
+        if self._index.device != x.device:
+            self._index = self._index.to(x.device)
+        return x[..., :1] + adv[..., self._index].sum(-1)
+
+
+def q_head(width: int, hidden: Sequence[int], num_actions: int, negative_slope: float, head: str = "joint") -> nn.Sequential:
+    """The fully connected layers (``hidden``, leaky ReLU) that end a Q-network: ``joint`` with one
+    output per joint action (the paper's); ``additive`` with 1 + 3m outputs made into the 3^m joint
+    values by ``AdditiveActionValues``. The last Linear layer is the last weighted layer either way."""
+    if head == "joint":
+        return leaky_mlp(width, hidden, num_actions, negative_slope)
+    if head == "additive":
+        m = controlled_count(num_actions)
+        return nn.Sequential(*leaky_mlp(width, hidden, 1 + 3 * m, negative_slope), AdditiveActionValues(m))
+    raise ValueError(f"head must be one of {list(HEADS)}, got {head!r}")
 
 
 def angle_encoding(a: torch.Tensor) -> torch.Tensor:
@@ -110,14 +170,14 @@ class MeasuredQNet(nn.Module):
     observation = "measured"
 
     def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1,
-                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01, head: str = "joint"):
         super().__init__()
         if num_actions < 1:
             raise ValueError(f"num_actions must be >= 1, got {num_actions}")
         self.features = MeasuredFeatures(bins, points, history)
         self.num_actions, self.bins, self.points, self.history = int(num_actions), int(bins), int(points), int(history)
         self.in_keys = self.features.in_keys
-        self.head = leaky_mlp(self.features.width, hidden, num_actions, negative_slope)
+        self.head = q_head(self.features.width, hidden, num_actions, negative_slope, head)
 
     def forward(self, *obs: torch.Tensor) -> torch.Tensor:
         if len(obs) != len(self.in_keys):
@@ -157,7 +217,7 @@ class RecurrentMeasuredQNet(nn.Module):
     recurrent = True
 
     def __init__(self, num_actions: int, bins: int, points: int = 0, history: int = 1, gru_size: int = 64,
-                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01):
+                 hidden: Sequence[int] = (256, 128), negative_slope: float = 0.01, head: str = "joint"):
         super().__init__()
         if int(gru_size) != gru_size or gru_size < 1:
             raise ValueError(f"gru_size must be an integer >= 1, got {gru_size!r}")
@@ -171,7 +231,7 @@ class RecurrentMeasuredQNet(nn.Module):
         self.in_keys = (*self.obs_keys, "recurrent_state", "is_init")
         self.embed = nn.Sequential(nn.Linear(self.features.width, int(hidden[0])), nn.LeakyReLU(negative_slope))
         self.gru = gru_core(hidden[0], self.gru_size)
-        self.head = leaky_mlp(self.gru_size, hidden[1:], num_actions, negative_slope)
+        self.head = q_head(self.gru_size, hidden[1:], num_actions, negative_slope, head)
 
     def embedding(self, *obs: torch.Tensor) -> torch.Tensor:
         return self.embed(self.features(*obs))

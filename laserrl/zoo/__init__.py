@@ -28,7 +28,8 @@ def card(name: str) -> dict:
     return {"name": name, "stage": meta.get("stage"), "K": meta.get("K"), "actions": meta.get("actions"),
             "observation": meta.get("observation", "fields"), "memory": meta.get("memory", {"history": 1}),
             "card": meta.get("card", {}), "eval": meta.get("eval", {}),
-            "heldout": meta.get("heldout")}
+            "heldout": meta.get("heldout"),
+            "head": ((meta.get("config") or {}).get("agent") or {}).get("network", {}).get("head", "joint")}
 
 
 def _eval_line(ev: dict) -> str:
@@ -49,7 +50,8 @@ def describe(name: str) -> str:
     lines = [f"zoo:{name}: stage {c['stage']} (turns {', '.join(c['actions']['controlled'])} by "
              f"{c['actions']['steps_deg']} deg), K = {c['K']}, observation {c['observation']}"
              + (f" (the last {c['memory']['history']} stacked)" if c["memory"].get("history", 1) > 1 else "")
-             + (f", remembered by a GRU of {c['memory']['gru_size']} units" if c["memory"].get("gru_size") else ""),
+             + (f", remembered by a GRU of {c['memory']['gru_size']} units" if c["memory"].get("gru_size") else "")
+             + (f", {c['head']} Q-head" if c["head"] != "joint" else ""),
              f"  trained by:  {k.get('command') or 'not recorded'}",
              f"  commit:      {k.get('commit') or 'not recorded'} (laserrl {k.get('laserrl_version')})",
              f"  machine:     {k.get('machine') or 'not recorded'}, {k.get('date') or ''}",

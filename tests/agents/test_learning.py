@@ -30,7 +30,10 @@ STARTS = [-40.0, -38.0, -36.0, -34.0]
     ["agent.n_steps=1", "env.observation=measured", "env.history=2"],
     # what instruments read, remembered by a GRU trained on sequences of 8 steps (16 cavities x 8)
     ["agent.n_steps=1", "env.observation=measured", "env.gru_size=32", "collector.frames_per_batch=128"],
-], ids=["one-step", "n-step", "measured-history", "measured-gru"])
+    # the same with the additive Q-head (V + one value per move of the angle)
+    ["agent.n_steps=1", "env.observation=measured", "env.gru_size=32", "collector.frames_per_batch=128",
+     "agent.network.head=additive"],
+], ids=["one-step", "n-step", "measured-history", "measured-gru", "measured-gru-additive"])
 def test_greedy_policy_beats_random_policy(tmp_path, variant):
     overrides = ["collector.frames_per_batch=64", *variant,
         f"run_dir={tmp_path}", "seed=0", "logger=none", "env.compile=false", "env.num_envs=16",

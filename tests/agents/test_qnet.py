@@ -4,6 +4,8 @@ import pytest
 import torch
 
 from laserrl.agents import FieldQNet
+from laserrl.agents.qnet import AdditiveActionValues, MeasuredQNet, RecurrentMeasuredQNet
+from laserrl.envs.actions import action_to_deltas, hold_action
 
 
 @pytest.mark.parametrize("num_actions", [3, 9, 81])
@@ -99,3 +101,42 @@ def test_recurrent_qnet_runs_only_as_a_tensordict_module():
         net(torch.zeros(1, 8), torch.ones(1, 1), torch.zeros(1, 4))
     with pytest.raises(ValueError, match="gru_size"):
         RecurrentMeasuredQNet(3, bins=8, gru_size=0)
+
+
+def test_additive_head_sums_one_value_per_move_of_each_angle():
+    """Q(s, a) = V + sum_j (A_j(d_j) - mean A_j) for joint action a = (d_1, ..., d_m), in the env's
+    action encoding; its greedy joint action is each angle's best move, all-hold where holding is."""
+    torch.manual_seed(0)
+    m = 3
+    head = AdditiveActionValues(m)
+    x = torch.randn(6, 1 + 3 * m)
+    q = head(x)
+    assert q.shape == (6, 3**m)
+    v, adv = x[:, 0], x[:, 1:].reshape(6, m, 3)
+    for a in range(3**m):
+        moves = action_to_deltas(torch.tensor(a), torch.ones(m)).long() + 1  # 0 down, 1 hold, 2 up
+        expected = v + sum(adv[:, j, moves[j]] - adv[:, j].mean(-1) for j in range(m))
+        torch.testing.assert_close(q[:, a], expected)
+    best = q.argmax(-1)
+    torch.testing.assert_close(action_to_deltas(best, torch.ones(m)).long() + 1, adv.argmax(-1))
+    x[:, 1:].reshape(6, m, 3)[:, :, 1] += 10.0  # holding is every angle's best move
+    assert (head(x).argmax(-1) == hold_action(m)).all()
+    with pytest.raises(ValueError, match="reads 10 values"):
+        head(torch.randn(2, 7))
+
+
+@pytest.mark.parametrize("make", [
+    lambda n, head: FieldQNet(n, head=head),
+    lambda n, head: MeasuredQNet(n, bins=8, history=2, hidden=(16,), head=head),
+    lambda n, head: RecurrentMeasuredQNet(n, bins=8, gru_size=6, hidden=(16, 12), head=head),
+], ids=["fields", "measured", "gru"])
+def test_every_network_takes_either_head_and_gives_one_value_per_joint_action(make):
+    for n in (3, 9, 81):
+        net = make(n, "additive")
+        assert isinstance(net.head[-1], AdditiveActionValues) and net.head[-1].m == {3: 1, 9: 2, 81: 4}[n]
+        assert net.head[-2].out_features == 1 + 3 * net.head[-1].m
+        assert make(n, "joint").head[-1].out_features == n
+    with pytest.raises(ValueError, match="power of 3"):
+        make(8, "additive")
+    with pytest.raises(ValueError, match="head must be one of"):
+        make(9, "factored")
