@@ -19,11 +19,19 @@ from typing import Sequence
 
 import torch
 
-from laserrl.agents.qnet import AdditiveActionValues, FieldQNet
+from laserrl.agents.qnet import AdditiveActionValues, FieldQNet, saved_head
 from laserrl.checkpoint import CheckpointError
 from laserrl.model import load_model
 
 __all__ = ["warm_start", "head_mapping", "additive_head_mapping"]
+
+
+def _check_grows(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> None:
+    """A head grows only onto a stage that controls every angle the checkpoint controlled."""
+    missing = [a for a in old_controlled if a not in new_controlled]
+    if missing:
+        raise CheckpointError(f"cannot grow the Q-head: the checkpoint controls {list(old_controlled)}, "
+                              f"this stage controls {list(new_controlled)} (missing {missing})")
 
 
 def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> torch.Tensor:
@@ -32,10 +40,7 @@ def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -
     Actions use ``laserrl.envs.action_to_deltas``'s encoding (base 3, first controlled
     angle least significant). Requires the old angles to be a subset of the new ones.
     """
-    missing = [a for a in old_controlled if a not in new_controlled]
-    if missing:
-        raise CheckpointError(f"cannot grow the Q-head: the checkpoint controls {list(old_controlled)}, "
-                              f"this stage controls {list(new_controlled)} (missing {missing})")
+    _check_grows(old_controlled, new_controlled)
     m_new = len(new_controlled)
     new_actions = torch.arange(3**m_new)
     digits = torch.stack([(new_actions // 3**j) % 3 for j in range(m_new)], -1)  # (A_new, m_new)
@@ -48,10 +53,7 @@ def head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -
 def additive_head_mapping(old_controlled: Sequence[str], new_controlled: Sequence[str]) -> torch.Tensor:
     """For every row of a grown additive head's last layer (V, then down / hold / up of each new
     controlled angle), the old row it inherits, or -1 for the moves of an angle the old head lacks."""
-    missing = [a for a in old_controlled if a not in new_controlled]
-    if missing:
-        raise CheckpointError(f"cannot grow the Q-head: the checkpoint controls {list(old_controlled)}, "
-                              f"this stage controls {list(new_controlled)} (missing {missing})")
+    _check_grows(old_controlled, new_controlled)
     rows = [0]
     for name in new_controlled:
         i = list(old_controlled).index(name) if name in old_controlled else None
@@ -77,7 +79,7 @@ def warm_start(qnet: FieldQNet, checkpoint: str, controlled: Sequence[str] | Non
         raise CheckpointError(f"{state['path']} is an ensemble of {state['meta']['ensemble']} models; warm-start "
                               "from one of its members")
     weights = dict(state["qnet"])
-    old_head, new_head = state["config"].get("agent", {}).get("network", {}).get("head", "joint"), head_kind(qnet)
+    old_head, new_head = saved_head(state["config"]), head_kind(qnet)
     if old_head != new_head:
         raise CheckpointError(f"checkpoint {state['path']} has a {old_head} Q-head (agent.network.head); "
                               f"this network's is {new_head}")

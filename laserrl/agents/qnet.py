@@ -76,6 +76,12 @@ def leaky_mlp(width: int, hidden: Sequence[int], out: int, negative_slope: float
 HEADS = ("joint", "additive")
 
 
+def saved_head(config) -> str:
+    """The Q-head of a saved run config (``agent.network.head``); ``joint`` for configs saved
+    before the key existed."""
+    return (((config or {}).get("agent") or {}).get("network") or {}).get("head", "joint")
+
+
 def controlled_count(num_actions: int) -> int:
     """m for 3^m joint actions (``laserrl.envs.actions``); ValueError if ``num_actions`` is no power of 3."""
     m = 0

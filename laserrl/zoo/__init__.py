@@ -16,6 +16,7 @@ import shutil
 from pathlib import Path
 
 from laserrl import model as _model
+from laserrl.agents.qnet import saved_head
 from laserrl.checkpoint import one_line_errors
 from laserrl.model import META, WEIGHTS, ModelError, read_meta, zoo_path
 
@@ -29,7 +30,7 @@ def card(name: str) -> dict:
             "observation": meta.get("observation", "fields"), "memory": meta.get("memory", {"history": 1}),
             "card": meta.get("card", {}), "eval": meta.get("eval", {}),
             "heldout": meta.get("heldout"),
-            "head": ((meta.get("config") or {}).get("agent") or {}).get("network", {}).get("head", "joint")}
+            "head": saved_head(meta.get("config"))}
 
 
 def _eval_line(ev: dict) -> str:
