@@ -212,3 +212,16 @@ def test_additive_recipe_is_the_wide_recipe_with_an_additive_q_head_in_every_sta
         assert sub.agent.network.head == "additive" and wide[name].agent.network.head == "joint"
         sub.agent.network.head = "joint"
         assert sub == wide[name], name
+
+
+def test_spread_recipe_is_the_additive_recipe_on_a_wider_cavity_spread_in_every_stage():
+    """experiment=miso_any_k_gru_wide_additive_spread trains every stage on cavities within +-15 % of
+    the nominal one, wider than the +-10 % of the mismatch bar and of the additive recipe, and changes
+    nothing else (its validation stays on the nominal cavity)."""
+    stages, additive = _recipe_stages("miso_any_k_gru_wide_additive_spread"), _recipe_stages("miso_any_k_gru_wide_additive")
+    assert stages.keys() == additive.keys()
+    for name, sub in stages.items():
+        assert sub.env.physics_spread == pytest.approx(0.15) and additive[name].env.physics_spread == pytest.approx(0.1)
+        assert sub.eval.get("physics_spread") is None
+        sub.env.physics_spread = additive[name].env.physics_spread
+        assert sub == additive[name], name
